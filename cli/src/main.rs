@@ -1,0 +1,351 @@
+//! `silvr`: the native companion binary. Same engine as the browser studio, run headless.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand};
+use silvr_core::camera::{CameraModel, Distortion};
+use silvr_core::eval::{self, GeometryOptions, GeometryReport};
+use silvr_core::gpu::{Gpu, GpuOptions};
+use silvr_core::lidar::{map, project};
+use silvr_core::synthetic::{generate, Preset};
+
+#[derive(Parser)]
+#[command(
+    name = "silvr",
+    version,
+    about = "SiLVR Studio: lidar-visual radiance fields with uncertainty, headless"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Print the GPU adapter SiLVR would use, and check the projection kernel against its CPU reference.
+    GpuInfo {
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+        /// Refuse software adapters (lavapipe, SwiftShader).
+        #[arg(long)]
+        require_hardware: bool,
+        /// Skip the kernel self-check.
+        #[arg(long)]
+        no_check: bool,
+    },
+    /// Generate the built-in synthetic world as a dataset (images, lidar, ground truth).
+    Synth {
+        /// `ci` (small, seconds) or `default` (720x540, 64 beams, 120 keyframes).
+        #[arg(long, default_value = "ci")]
+        preset: String,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Output folder (must not exist unless --overwrite).
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long)]
+        overwrite: bool,
+    },
+    /// Score a reconstruction against ground truth: accuracy, completeness, precision/recall/F.
+    Eval {
+        /// Reconstruction point cloud (PLY).
+        #[arg(long)]
+        reconstruction: PathBuf,
+        /// Dataset (or folder) holding gt/cloud.ply and optionally gt/observed.bin.
+        #[arg(long)]
+        gt: PathBuf,
+        /// Write the JSON report here (printed to stdout otherwise).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Write the evaluated reconstruction coloured by its distance to the GT.
+        #[arg(long)]
+        error_ply: Option<PathBuf>,
+        /// Keep points in space the GT never observed.
+        #[arg(long)]
+        keep_unknown: bool,
+    },
+    /// The main job: generate the synthetic world, build the reconstructions, evaluate, write report.json.
+    Demo {
+        /// `ci` or `default`; `ci` when the only GPU adapter is a software one.
+        #[arg(long)]
+        preset: Option<String>,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        #[arg(long, default_value = "silvr-demo")]
+        out: PathBuf,
+    },
+}
+
+fn main() {
+    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::GpuInfo {
+            json,
+            require_hardware,
+            no_check,
+        } => gpu_info(json, require_hardware, !no_check),
+        Command::Synth {
+            preset,
+            seed,
+            out,
+            overwrite,
+        } => synth(&preset, seed, &out, overwrite).map(|_| ()),
+        Command::Eval {
+            reconstruction,
+            gt,
+            out,
+            error_ply,
+            keep_unknown,
+        } => eval_cmd(
+            &reconstruction,
+            &gt,
+            out.as_deref(),
+            error_ply.as_deref(),
+            keep_unknown,
+        ),
+        Command::Demo { preset, seed, out } => demo(preset.as_deref(), seed, &out),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+/// The camera the self-check projects into: the Spires front fisheye at a quarter of its resolution.
+fn check_camera() -> CameraModel {
+    CameraModel {
+        width: 360,
+        height: 270,
+        fx: 174.54,
+        fy: 174.63,
+        cx: 177.82,
+        cy: 139.77,
+        distortion: Distortion::Fisheye {
+            k1: -0.041142,
+            k2: -0.002422,
+            k3: 0.003400,
+            k4: -0.001852,
+        },
+    }
+}
+
+fn gpu_info(json: bool, require_hardware: bool, check: bool) -> Result<()> {
+    let gpu = pollster::block_on(Gpu::new(GpuOptions {
+        require_hardware,
+        ..Default::default()
+    }))
+    .context("no usable GPU")?;
+    let check = if check {
+        Some(
+            pollster::block_on(project::self_check(&gpu, &check_camera(), 7, 20_000))
+                .context("projection kernel self-check")?,
+        )
+    } else {
+        None
+    };
+    if json {
+        let v = serde_json::json!({ "adapter": gpu.report(), "projection_check": check });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!("adapter: {}", gpu.report());
+        if let Some(c) = &check {
+            println!(
+                "projection kernel vs CPU reference: {} ({} points, {} of {} pixels filled, {} winner mismatches, max uv error {:.2e} px)",
+                if c.passed() { "agree" } else { "DISAGREE" },
+                c.points,
+                c.filled_pixels,
+                c.pixels,
+                c.winner_mismatches,
+                c.max_uv_error_px
+            );
+        }
+    }
+    if let Some(c) = check {
+        anyhow::ensure!(
+            c.passed(),
+            "the GPU projection kernel disagrees with its CPU reference: {c:?}"
+        );
+    }
+    Ok(())
+}
+
+fn open_gpu() -> Result<Gpu> {
+    let gpu = pollster::block_on(Gpu::new(GpuOptions::default())).context("no usable GPU")?;
+    eprintln!("[gpu] {}", gpu.report());
+    Ok(gpu)
+}
+
+fn preset_by_name(name: &str, seed: u64) -> Result<Preset> {
+    Preset::by_name(name, seed)
+        .with_context(|| format!("unknown preset {name:?} (use `ci` or `default`)"))
+}
+
+fn synth_with(
+    gpu: &Gpu,
+    preset: &Preset,
+    out: &Path,
+    overwrite: bool,
+) -> Result<generate::SynthSummary> {
+    let start = Instant::now();
+    let mut last = usize::MAX;
+    let summary = pollster::block_on(generate::generate(preset, gpu, out, overwrite, &mut |p| {
+        if p.done != last {
+            last = p.done;
+            eprintln!(
+                "[synth] {} {}/{} ({:.1} s)",
+                p.stage,
+                p.done,
+                p.total,
+                start.elapsed().as_secs_f64()
+            );
+        }
+    }))
+    .with_context(|| {
+        format!(
+            "generating the {} world into {}",
+            preset.name,
+            out.display()
+        )
+    })?;
+    eprintln!(
+        "[synth] wrote {} ({} keyframes, {} images, {} lidar points, {} GT points, {} files) in {:.1} s",
+        summary.path.display(),
+        summary.keyframes,
+        summary.images,
+        summary.lidar_points,
+        summary.gt_points,
+        summary.files,
+        start.elapsed().as_secs_f64()
+    );
+    Ok(summary)
+}
+
+fn synth(preset: &str, seed: u64, out: &Path, overwrite: bool) -> Result<generate::SynthSummary> {
+    let preset = preset_by_name(preset, seed)?;
+    let gpu = open_gpu()?;
+    synth_with(&gpu, &preset, out, overwrite)
+}
+
+fn eval_cmd(
+    rec: &Path,
+    gt: &Path,
+    out: Option<&Path>,
+    error_ply: Option<&Path>,
+    keep_unknown: bool,
+) -> Result<()> {
+    let options = GeometryOptions {
+        filter_unknown: !keep_unknown,
+        ..GeometryOptions::default()
+    };
+    let ev = eval::evaluate_files_full(rec, gt, &options)?;
+    if let Some(p) = error_ply {
+        write_error_cloud(&ev, p)?;
+    }
+    let json = ev.report.to_json_pretty();
+    match out {
+        Some(p) => {
+            write_atomic(p, json.as_bytes())?;
+            eprintln!("{}", ev.report.summary());
+        }
+        None => println!("{json}"),
+    }
+    Ok(())
+}
+
+fn write_error_cloud(ev: &eval::GeometryEvaluation, path: &Path) -> Result<()> {
+    let cloud = eval::error_colored_cloud(&ev.reconstruction, &ev.rec_to_gt, 0.2);
+    silvr_core::pointcloud::write_ply(path, &cloud)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    silvr_core::dataset::write_atomic(path, bytes).map_err(Into::into)
+}
+
+fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
+    let total = Instant::now();
+    let gpu = open_gpu()?;
+    let name = preset.unwrap_or(if gpu.report().software {
+        "ci"
+    } else {
+        "default"
+    });
+    let preset = preset_by_name(name, seed)?;
+    eprintln!(
+        "[demo] preset {name}, seed {seed}, output {}",
+        out.display()
+    );
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let dataset = out.join("dataset");
+    let t = Instant::now();
+    synth_with(&gpu, &preset, &dataset, true)?;
+    let synth_s = t.elapsed().as_secs_f64();
+
+    // Lidar-only baseline: the deskewed sweeps in the world frame.
+    let t = Instant::now();
+    let cloud = map::lidar_map(&dataset)?;
+    let lidar_ply = out.join("lidar_only.ply");
+    silvr_core::pointcloud::write_ply(&lidar_ply, &cloud)
+        .with_context(|| format!("writing {}", lidar_ply.display()))?;
+    let ev = eval::evaluate_files_full(&lidar_ply, &dataset, &GeometryOptions::default())?;
+    write_error_cloud(&ev, &out.join("lidar_only_error.ply"))?;
+    let lidar_s = t.elapsed().as_secs_f64();
+
+    let methods = serde_json::json!({ "lidar_only": report_json(&ev.report) });
+    let report = serde_json::json!({
+        "preset": name,
+        "seed": seed,
+        "dataset": dataset,
+        "methods": methods,
+        "timing": {
+            "synth_s": synth_s,
+            "lidar_only_s": lidar_s,
+            "total_s": total.elapsed().as_secs_f64(),
+            "adapter": gpu.report(),
+        },
+    });
+    let path = out.join("report.json");
+    write_atomic(&path, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    print_table(&[("lidar_only", &ev.report)]);
+    eprintln!(
+        "[demo] report: {} ({:.1} s)",
+        path.display(),
+        total.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+/// The report keys of one method (full report underneath, for the curious).
+fn report_json(r: &GeometryReport) -> serde_json::Value {
+    let mut v = serde_json::to_value(r).unwrap_or_default();
+    if let Some(obj) = v.as_object_mut() {
+        obj.remove("options");
+    }
+    v
+}
+
+fn print_table(rows: &[(&str, &GeometryReport)]) {
+    println!(
+        "{:<12} {:>10} {:>10} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "method", "acc [m]", "comp [m]", "P@5cm", "R@5cm", "F@5cm", "P@10cm", "R@10cm", "F@10cm"
+    );
+    for (name, r) in rows {
+        let g = |k: &str| r.per_threshold.get(k).copied().unwrap_or(f64::NAN);
+        println!(
+            "{:<12} {:>10.4} {:>10.4} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3}",
+            name,
+            r.accuracy_m,
+            r.completeness_m,
+            g("precision_5cm"),
+            g("recall_5cm"),
+            g("fscore_5cm"),
+            g("precision_10cm"),
+            g("recall_10cm"),
+            g("fscore_10cm")
+        );
+    }
+}

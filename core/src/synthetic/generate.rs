@@ -1,0 +1,754 @@
+//! Writes a synthetic world as a dataset (layout in `DATASET.md`): sensor data as a real rig would give it,
+//! the lidar products the training reads (deskewed sweeps, per-camera depth, normals, sky masks — made by
+//! the same `lidar` code that processes real data, projection on the GPU), and exact ground truth.
+
+use std::collections::{BTreeMap, HashSet};
+use std::path::{Path, PathBuf};
+
+use glam::{DVec2, DVec3};
+use serde::Serialize;
+
+use super::raycast::{Scene, Shape, GROUND};
+use super::sensors::{render_camera, simulate_sweep, LidarNoise, RenderOptions, Sweep};
+use super::world::{Label, World};
+use super::Preset;
+use crate::dataset::{
+    self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, NsFrame, Transforms,
+};
+use crate::eval::occupancy::OccupancyGrid;
+use crate::geometry::{Se3, Trajectory};
+use crate::gpu::{Gpu, GpuError};
+use crate::lidar::{deskew, images, normals, project, sky};
+use crate::pointcloud::{write_ply_bytes, PointCloud};
+
+/// Generator version, recorded in the manifest; bump when output bytes change for the same seed.
+pub const GENERATOR_VERSION: &str = "silvr-synth 1";
+
+/// Why generation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum SynthError {
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+    #[error("GPU: {0}")]
+    Gpu(#[from] GpuError),
+    #[error("{0}")]
+    Other(String),
+}
+
+/// Progress of a long job: a stage name and a count.
+#[derive(Clone, Debug)]
+pub struct Progress<'a> {
+    pub stage: &'a str,
+    pub done: usize,
+    pub total: usize,
+}
+
+/// What was written.
+#[derive(Clone, Debug, Serialize)]
+pub struct SynthSummary {
+    pub path: PathBuf,
+    pub keyframes: usize,
+    pub images: usize,
+    pub lidar_points: usize,
+    pub gt_points: usize,
+    pub files: usize,
+}
+
+/// Per-keyframe record in the manifest.
+#[derive(Clone, Debug, Serialize)]
+struct KeyframeRecord {
+    index: usize,
+    sweep_start: f64,
+    image_time: f64,
+    raw_points: usize,
+    deskewed_dropped: usize,
+}
+
+#[derive(Serialize)]
+struct Manifest<'a> {
+    layout_version: u32,
+    generator: &'a str,
+    preset: &'a Preset,
+    keyframes: Vec<KeyframeRecord>,
+    cameras: Vec<&'a str>,
+    labels: BTreeMap<u8, &'static str>,
+    encodings: BTreeMap<&'static str, &'static str>,
+    files: BTreeMap<String, u64>,
+}
+
+/// Tracks every file written, for the manifest.
+struct Out {
+    w: DatasetWriter,
+    files: BTreeMap<String, u64>,
+}
+
+impl Out {
+    fn put(&mut self, rel: String, bytes: &[u8]) -> Result<(), DatasetError> {
+        self.w.write(&rel, bytes)?;
+        self.files.insert(rel, bytes.len() as u64);
+        Ok(())
+    }
+}
+
+fn frame_name(k: usize) -> String {
+    format!("{k:05}")
+}
+
+/// The lidar's trajectory as an odometry system would report it: T_world_lidar at 100 Hz. Deskewing reads
+/// this (interpolated), never the analytic motion, exactly as it would with real data.
+pub fn odometry(preset: &Preset) -> Trajectory {
+    let t_end = preset.sweep_start(preset.keyframes) + preset.lidar.sweep_duration() + 0.1;
+    let n = (t_end * 100.0).ceil() as usize + 1;
+    let stamps: Vec<f64> = (0..n).map(|i| -0.05 + i as f64 * 0.01).collect();
+    let poses = stamps.iter().map(|&t| preset.t_world_lidar(t)).collect();
+    Trajectory::new(stamps, poses).expect("sorted finite stamps")
+}
+
+fn sweep_cloud(sweep: &Sweep, positions: &[DVec3]) -> PointCloud {
+    let mut pc = PointCloud::from_positions(positions.to_vec());
+    pc.set_scalar(
+        "intensity",
+        sweep.points.iter().map(|p| p.intensity).collect(),
+    );
+    pc.set_scalar("ring", sweep.points.iter().map(|p| p.ring as f32).collect());
+    pc.set_scalar(
+        "column",
+        sweep.points.iter().map(|p| p.column as f32).collect(),
+    );
+    pc.set_scalar(
+        "time_offset",
+        sweep
+            .points
+            .iter()
+            .map(|p| (p.time - sweep.t0) as f32)
+            .collect(),
+    );
+    pc
+}
+
+fn ply(pc: &PointCloud, rel: &str) -> Result<Vec<u8>, SynthError> {
+    write_ply_bytes(pc).map_err(|e| SynthError::Other(format!("{rel}: {e}")))
+}
+
+/// Generates `preset` into `out` (which must not exist unless `overwrite`).
+pub async fn generate(
+    preset: &Preset,
+    gpu: &Gpu,
+    out: &Path,
+    overwrite: bool,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<SynthSummary, SynthError> {
+    let world = World::generate(preset.world.clone(), preset.seed);
+    let mut o = Out {
+        w: DatasetWriter::create(out, overwrite)?,
+        files: BTreeMap::new(),
+    };
+    let odo = odometry(preset);
+    let cams: Vec<&str> = preset.rig.cameras.iter().map(|c| c.name.as_str()).collect();
+    let seen_voxel = preset.observed_voxel;
+    let mut seen: HashSet<[i64; 3]> = HashSet::new();
+    let vkey = |p: DVec3| -> [i64; 3] { (p / seen_voxel).floor().as_i64vec3().to_array() };
+    let mut observed =
+        OccupancyGrid::new(preset.observed_voxel).map_err(|e| SynthError::Other(e.to_string()))?;
+    let mut frames = Vec::new();
+    let mut records = Vec::new();
+    let mut lidar_points = 0;
+    let mut base_poses = Vec::new();
+    let mut lidar_poses = Vec::new();
+    let mut cam_poses: Vec<Vec<Se3>> = vec![Vec::new(); cams.len()];
+    let mut image_times = Vec::new();
+    let total = preset.keyframes;
+
+    for k in 0..preset.keyframes {
+        progress(Progress {
+            stage: "keyframes",
+            done: k,
+            total,
+        });
+        let name = frame_name(k);
+        let t0 = preset.sweep_start(k);
+        let t_img = preset.image_time(k);
+        image_times.push(t_img);
+        base_poses.push(preset.t_world_base(t_img));
+        let t_world_lidar = preset.t_world_lidar(t_img);
+        lidar_poses.push(t_world_lidar);
+        let pose_at = |t: f64| preset.t_world_lidar(t);
+        let seed_k = preset.seed.wrapping_mul(1_000_003).wrapping_add(k as u64);
+
+        // Lidar: the raw, motion-distorted sweep, then deskewed to the image time with the odometry.
+        let sweep = simulate_sweep(
+            &world,
+            &preset.lidar,
+            &pose_at,
+            t0,
+            None,
+            LidarNoise {
+                range: true,
+                dropout: true,
+            },
+            seed_k,
+        );
+        lidar_points += sweep.points.len();
+        let raw: Vec<DVec3> = sweep.points.iter().map(|p| p.position).collect();
+        let times: Vec<f64> = sweep.points.iter().map(|p| p.time).collect();
+        let rel = format!("lidar/raw/{name}.ply");
+        o.put(rel.clone(), &ply(&sweep_cloud(&sweep, &raw), &rel)?)?;
+        let desk = deskew::deskew(&raw, &times, &odo, t_img)
+            .map_err(|e| SynthError::Other(format!("keyframe {k}: {e}")))?;
+        let rel = format!("lidar/deskewed/{name}.ply");
+        o.put(
+            rel.clone(),
+            &ply(&sweep_cloud(&sweep, &desk.positions), &rel)?,
+        )?;
+        records.push(KeyframeRecord {
+            index: k,
+            sweep_start: t0,
+            image_time: t_img,
+            raw_points: sweep.points.len(),
+            deskewed_dropped: desk.dropped,
+        });
+        let ring: Vec<u16> = sweep.points.iter().map(|p| p.ring).collect();
+        let column: Vec<u16> = sweep.points.iter().map(|p| p.column).collect();
+        let rimg = normals::RangeImage::new(
+            preset.lidar.beams as usize,
+            preset.lidar.columns as usize,
+            &ring,
+            &column,
+        );
+        let nrm = normals::newell_normals(&desk.positions, &rimg, &ring, &column, 0.1);
+
+        // Ground truth of what the lidar observed: exact returns, and free space along their rays.
+        let exact = simulate_sweep(
+            &world,
+            &preset.lidar,
+            &pose_at,
+            t0,
+            None,
+            LidarNoise {
+                range: false,
+                dropout: false,
+            },
+            seed_k,
+        );
+        let mut ends = Vec::with_capacity(exact.points.len());
+        for p in &exact.points {
+            let pose = preset.t_world_lidar(p.time);
+            let w = pose.transform_point(p.position);
+            seen.insert(vkey(w));
+            ends.push((pose.trans, w));
+        }
+        for (origin, end) in ends {
+            observed.insert_ray(origin, end, true);
+        }
+
+        for (ci, cam) in preset.rig.cameras.iter().enumerate() {
+            let t_world_cam = t_world_lidar * cam.t_lidar_cam;
+            cam_poses[ci].push(t_world_cam);
+            let model = &cam.model;
+            let (w, h) = (model.width, model.height);
+            let frame = render_camera(
+                &world,
+                model,
+                &t_world_cam,
+                RenderOptions {
+                    supersample: preset.supersample,
+                    noise_std: preset.pixel_noise,
+                    seed: seed_k ^ ((ci as u64 + 1) << 40),
+                },
+            );
+            let cn = cam.name.as_str();
+            o.put(
+                format!("images/{cn}/{name}.png"),
+                &png_rgb(w, h, &frame.rgb),
+            )?;
+            let gt_depth: Vec<u16> = frame
+                .range
+                .iter()
+                .map(|&r| images::encode_depth(r))
+                .collect();
+            o.put(
+                format!("gt/depth/{cn}/{name}.png"),
+                &png_gray16(w, h, &gt_depth),
+            )?;
+            let gt_n: Vec<[u8; 3]> = frame
+                .normal
+                .iter()
+                .map(|n| images::encode_normal(glam::Vec3::from_array(*n).as_dvec3()))
+                .collect();
+            o.put(format!("gt/normals/{cn}/{name}.png"), &png_rgb(w, h, &gt_n))?;
+            let gt_sky: Vec<u8> = frame
+                .label
+                .iter()
+                .map(|&l| if l == Label::Sky as u8 { 255 } else { 0 })
+                .collect();
+            o.put(format!("gt/sky/{cn}/{name}.png"), &png_gray8(w, h, &gt_sky))?;
+            o.put(
+                format!("gt/semantic/{cn}/{name}.png"),
+                &png_gray8(w, h, &frame.label),
+            )?;
+            // What the camera observed: every pixel's surface; free space along every 3rd pixel's ray.
+            let max_angle = model.valid_angle();
+            for y in 0..h {
+                for x in 0..w {
+                    let i = (y * w + x) as usize;
+                    let r = frame.range[i] as f64;
+                    if r <= 0.0 {
+                        continue;
+                    }
+                    let Some(dir) =
+                        model.unproject_within(DVec2::new(x as f64, y as f64), max_angle)
+                    else {
+                        continue;
+                    };
+                    let p = t_world_cam.transform_point(dir * r);
+                    seen.insert(vkey(p));
+                    if x % 3 == 0 && y % 3 == 0 {
+                        observed.insert_ray(t_world_cam.trans, p, true);
+                    }
+                }
+            }
+
+            // Lidar supervision for this camera, exactly as for real data.
+            let t_cam_lidar = cam.t_lidar_cam.inverse();
+            let input = project::ProjectionInput {
+                camera: model,
+                t_cam_points: t_cam_lidar,
+                points: &desk.positions,
+                near: preset.lidar.min_range as f32,
+            };
+            let proj = project::project_gpu(gpu, &input).await?;
+            let (mut depth, nimg) =
+                images::lidar_images(&proj, &desk.positions, &nrm, &t_cam_lidar);
+            let up_lidar = t_world_lidar.rot.inverse() * DVec3::Z;
+            let mask = sky::sky_mask(
+                &sky::SkyInput {
+                    camera: model,
+                    rgb: &frame.rgb,
+                    t_cam_lidar,
+                    points: &desk.positions,
+                    image: &rimg,
+                    depth: &depth,
+                    up_lidar,
+                },
+                sky::SkyParams::default(),
+            );
+            for (d, &m) in depth.iter_mut().zip(&mask) {
+                if m && *d == 0 {
+                    *d = images::SKY_DEPTH;
+                }
+            }
+            let mask8: Vec<u8> = mask.iter().map(|&m| if m { 255 } else { 0 }).collect();
+            let depth_rel = format!("lidar_depth/{cn}/{name}.png");
+            let normal_rel = format!("lidar_normals/{cn}/{name}.png");
+            let sky_rel = format!("sky_mask/{cn}/{name}.png");
+            o.put(depth_rel.clone(), &png_gray16(w, h, &depth))?;
+            o.put(normal_rel.clone(), &png_rgb(w, h, &nimg))?;
+            o.put(sky_rel.clone(), &png_gray8(w, h, &mask8))?;
+            let mut f = NsFrame::new(format!("images/{cn}/{name}.png"), model, &t_world_cam);
+            f.depth_file_path = Some(depth_rel);
+            f.normal_file_path = Some(normal_rel);
+            f.sky_mask_path = Some(sky_rel);
+            f.camera = Some(cn.to_string());
+            f.keyframe = Some(k);
+            f.time = Some(t_img);
+            frames.push(f);
+        }
+    }
+
+    progress(Progress {
+        stage: "ground truth",
+        done: 0,
+        total: 3,
+    });
+    let gt = sample_gt_cloud(&world, preset.gt_spacing, |p| {
+        let k = vkey(p);
+        [
+            [0, 0, 0],
+            [1, 0, 0],
+            [-1, 0, 0],
+            [0, 1, 0],
+            [0, -1, 0],
+            [0, 0, 1],
+            [0, 0, -1],
+        ]
+        .iter()
+        .any(|d| seen.contains(&[k[0] + d[0], k[1] + d[1], k[2] + d[2]]))
+    });
+    let gt_points = gt.len();
+    o.put("gt/cloud.ply".into(), &ply(&gt, "gt/cloud.ply")?)?;
+    o.put("gt/mesh.ply".into(), &mesh_ply(&world))?;
+    let obs = observed
+        .to_bytes()
+        .map_err(|e| SynthError::Other(format!("gt/observed.bin: {e}")))?;
+    o.put("gt/observed.bin".into(), &obs)?;
+    progress(Progress {
+        stage: "ground truth",
+        done: 3,
+        total: 3,
+    });
+
+    // Poses, calibration, transforms.json, manifest.
+    o.put(
+        "poses/base_tum.txt".into(),
+        dataset::tum_string(&image_times, &base_poses).as_bytes(),
+    )?;
+    o.put(
+        "poses/lidar_tum.txt".into(),
+        dataset::tum_string(&image_times, &lidar_poses).as_bytes(),
+    )?;
+    o.put(
+        "poses/odometry_lidar_tum.txt".into(),
+        dataset::tum_string(odo.stamps(), odo.poses()).as_bytes(),
+    )?;
+    for (ci, cn) in cams.iter().enumerate() {
+        o.put(
+            format!("poses/{cn}_tum.txt"),
+            dataset::tum_string(&image_times, &cam_poses[ci]).as_bytes(),
+        )?;
+    }
+    let json = |v: &dyn erased::Json| v.to_json();
+    o.put("calib/rig.json".into(), json(&preset.rig).as_bytes())?;
+    o.put("calib/lidar.json".into(), json(&preset.lidar).as_bytes())?;
+    let n_frames = frames.len();
+    // Hold out every 10th keyframe (all its cameras) for novel-view evaluation.
+    let (mut train, mut val) = (Vec::new(), Vec::new());
+    for f in &frames {
+        if f.keyframe.unwrap_or(0) % 10 == 5 {
+            val.push(f.file_path.clone());
+        } else {
+            train.push(f.file_path.clone());
+        }
+    }
+    let transforms = Transforms {
+        frames,
+        depth_unit_scale_factor: Some(1.0 / images::DEPTH_SCALE as f64),
+        train_filenames: train,
+        val_filenames: val,
+    };
+    o.put("transforms.json".into(), json(&transforms).as_bytes())?;
+    let labels = Label::ALL.iter().map(|l| (*l as u8, l.name())).collect();
+    let encodings = BTreeMap::from([
+        ("images", "8-bit RGB PNG, display gamma 2.2"),
+        ("lidar_depth", "16-bit PNG, Euclidean range from the camera centre x 256 (m), 0 = no return, 65535 = sky"),
+        ("lidar_normals", "8-bit RGB PNG, (n + 1) / 2 x 255, unit normal in the OpenCV camera frame facing the camera, 128 = none"),
+        ("sky_mask", "8-bit PNG, 255 = sky (from lidar no-returns and the image)"),
+        ("gt/depth", "16-bit PNG, exact Euclidean range x 256 (m), 0 = sky"),
+        ("gt/normals", "as lidar_normals, exact"),
+        ("gt/sky", "8-bit PNG, 255 = sky, exact"),
+        ("gt/semantic", "8-bit PNG, label ids (see labels)"),
+        ("lidar/raw", "PLY, points in the sensor frame at their firing time; time_offset (s) from the sweep start"),
+        ("lidar/deskewed", "PLY, points in the sensor frame at the keyframe's image time"),
+        ("poses", "TUM: t tx ty tz qx qy qz qw, T_world_<frame>; base, lidar and cameras at image times, odometry at 100 Hz"),
+        ("transforms.json", "nerfstudio: c2w in OpenGL axes, cx/cy with pixel centres at +0.5"),
+        ("gt/cloud.ply", "surface samples of everything any sensor saw, double x/y/z"),
+        ("gt/observed.bin", "occupancy grid (log-odds), see eval::occupancy"),
+    ]);
+    let files = o.files.clone();
+    let manifest = Manifest {
+        layout_version: dataset::LAYOUT_VERSION,
+        generator: GENERATOR_VERSION,
+        preset,
+        keyframes: records,
+        cameras: cams.clone(),
+        labels,
+        encodings,
+        files,
+    };
+    let text =
+        serde_json::to_string_pretty(&manifest).map_err(|e| SynthError::Other(e.to_string()))?;
+    o.put("manifest.json".into(), text.as_bytes())?;
+    let n_files = o.files.len();
+    let path = o.w.commit()?;
+    Ok(SynthSummary {
+        path,
+        keyframes: preset.keyframes,
+        images: n_frames,
+        lidar_points,
+        gt_points,
+        files: n_files,
+    })
+}
+
+mod erased {
+    /// Pretty JSON of anything serialisable (serialising plain data structs cannot fail).
+    pub trait Json {
+        fn to_json(&self) -> String;
+    }
+    impl<T: serde::Serialize> Json for T {
+        fn to_json(&self) -> String {
+            serde_json::to_string_pretty(self).expect("plain data serialises")
+        }
+    }
+}
+
+/// Samples every surface on a grid of `spacing`, keeping samples that `keep` accepts (observed space) and
+/// that are not buried inside another solid. Deterministic order: primitives in order, then grid order.
+pub fn sample_gt_cloud(
+    world: &World,
+    spacing: f64,
+    keep: impl Fn(DVec3) -> bool + Sync,
+) -> PointCloud {
+    use rayon::prelude::*;
+    let scene: &Scene = &world.scene;
+    let per_prim: Vec<Vec<DVec3>> = (0..scene.primitives.len())
+        .into_par_iter()
+        .map(|i| {
+            let mut pts = Vec::new();
+            surface_samples(&scene.primitives[i].shape, spacing, &mut pts);
+            pts.retain(|&p| keep(p) && !scene.inside_solid(p, Some(i as u32), 1e-6));
+            pts
+        })
+        .collect();
+    let mut cloud: Vec<DVec3> = per_prim.into_iter().flatten().collect();
+    // The ground: only where it was observed; sample the observed area's bounding box row by row.
+    let (mut lo, mut hi) = (DVec2::splat(f64::INFINITY), DVec2::splat(f64::NEG_INFINITY));
+    for p in &cloud {
+        lo = lo.min(p.truncate());
+        hi = hi.max(p.truncate());
+    }
+    if lo.x.is_finite() {
+        let nx = ((hi.x - lo.x) / spacing).ceil() as i64;
+        let ny = ((hi.y - lo.y) / spacing).ceil() as i64;
+        let x0 = (lo.x / spacing).floor();
+        let y0 = (lo.y / spacing).floor();
+        let rows: Vec<Vec<DVec3>> = (0..=ny)
+            .into_par_iter()
+            .map(|j| {
+                let mut row = Vec::new();
+                for i in 0..=nx {
+                    let p = DVec3::new(
+                        (x0 + i as f64 + 0.5) * spacing,
+                        (y0 + j as f64 + 0.5) * spacing,
+                        0.0,
+                    );
+                    if keep(p) && !scene.inside_solid(p, None, 1e-6) {
+                        row.push(p);
+                    }
+                }
+                row
+            })
+            .collect();
+        cloud.extend(rows.into_iter().flatten());
+    }
+    let _ = GROUND;
+    PointCloud::from_positions(cloud)
+}
+
+fn grid(n: f64) -> usize {
+    (n.ceil() as usize).max(1)
+}
+
+/// Regular samples over a primitive's surface, about `s` apart.
+fn surface_samples(shape: &Shape, s: f64, out: &mut Vec<DVec3>) {
+    match *shape {
+        Shape::Cuboid { min, max } => {
+            let e = max - min;
+            for axis in 0..3 {
+                let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+                let (na, nb) = (grid(e[a] / s), grid(e[b] / s));
+                for side in [min[axis], max[axis]] {
+                    for i in 0..na {
+                        for j in 0..nb {
+                            let mut p = DVec3::ZERO;
+                            p[axis] = side;
+                            p[a] = min[a] + (i as f64 + 0.5) * e[a] / na as f64;
+                            p[b] = min[b] + (j as f64 + 0.5) * e[b] / nb as f64;
+                            out.push(p);
+                        }
+                    }
+                }
+            }
+        }
+        Shape::Cylinder {
+            base,
+            radius,
+            height,
+        } => {
+            let na = grid(std::f64::consts::TAU * radius / s);
+            let nz = grid(height / s);
+            for i in 0..na {
+                let a = std::f64::consts::TAU * (i as f64 + 0.5) / na as f64;
+                for j in 0..nz {
+                    out.push(
+                        base + DVec3::new(
+                            radius * a.cos(),
+                            radius * a.sin(),
+                            (j as f64 + 0.5) * height / nz as f64,
+                        ),
+                    );
+                }
+            }
+            let nr = grid(2.0 * radius / s);
+            for i in 0..nr {
+                for j in 0..nr {
+                    let x = -radius + (i as f64 + 0.5) * 2.0 * radius / nr as f64;
+                    let y = -radius + (j as f64 + 0.5) * 2.0 * radius / nr as f64;
+                    if x * x + y * y <= radius * radius {
+                        out.push(base + DVec3::new(x, y, height));
+                        out.push(base + DVec3::new(x, y, 0.0));
+                    }
+                }
+            }
+        }
+        Shape::Sphere { center, radius } => {
+            let nlat = grid(std::f64::consts::PI * radius / s);
+            for i in 0..nlat {
+                let th = std::f64::consts::PI * (i as f64 + 0.5) / nlat as f64;
+                let nlon = grid(std::f64::consts::TAU * radius * th.sin() / s);
+                for j in 0..nlon {
+                    let ph = std::f64::consts::TAU * (j as f64 + 0.5) / nlon as f64;
+                    out.push(
+                        center
+                            + radius
+                                * DVec3::new(th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()),
+                    );
+                }
+            }
+        }
+        Shape::Triangle { a, b, c } => {
+            let n = grid((b - a).length().max((c - a).length()).max((c - b).length()) / s);
+            for i in 0..n {
+                for j in 0..(n - i) {
+                    let u = (i as f64 + 1.0 / 3.0) / n as f64;
+                    let v = (j as f64 + 1.0 / 3.0) / n as f64;
+                    out.push(a + (b - a) * u + (c - a) * v);
+                }
+            }
+        }
+    }
+}
+
+/// The world as a triangle mesh (binary PLY): each face carries its semantic label and albedo.
+pub fn mesh_ply(world: &World) -> Vec<u8> {
+    let mut verts: Vec<DVec3> = Vec::new();
+    let mut faces: Vec<([u32; 3], u8, [u8; 3])> = Vec::new();
+    let scene = &world.scene;
+    let mut add_tri =
+        |verts: &mut Vec<DVec3>, a: DVec3, b: DVec3, c: DVec3, prim: u32, material: u16| {
+            let base = verts.len() as u32;
+            verts.extend([a, b, c]);
+            let centre = (a + b + c) / 3.0;
+            let n = (b - a).cross(c - a).normalize_or_zero();
+            let hit = super::raycast::Hit {
+                t: 0.0,
+                point: centre,
+                normal: n,
+                primitive: prim,
+                material,
+            };
+            let alb = world.albedo(&hit);
+            faces.push((
+                [base, base + 1, base + 2],
+                world.label(&hit) as u8,
+                alb.to_array()
+                    .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8),
+            ));
+        };
+    // Ground: one big quad around everything.
+    let ext = world.params.tower_distance + 50.0;
+    let g = |x: f64, y: f64| DVec3::new(x, y, 0.0);
+    add_tri(
+        &mut verts,
+        g(-ext, -ext),
+        g(ext, -ext),
+        g(ext, ext),
+        GROUND,
+        scene.ground_material,
+    );
+    add_tri(
+        &mut verts,
+        g(-ext, -ext),
+        g(ext, ext),
+        g(-ext, ext),
+        GROUND,
+        scene.ground_material,
+    );
+    for (i, prim) in scene.primitives.iter().enumerate() {
+        let (pi, m) = (i as u32, prim.material);
+        match prim.shape {
+            Shape::Cuboid { min, max } => {
+                let c = |x: usize, y: usize, z: usize| {
+                    DVec3::new([min.x, max.x][x], [min.y, max.y][y], [min.z, max.z][z])
+                };
+                // Each face as two triangles wound outwards.
+                let quads = [
+                    [c(0, 0, 0), c(0, 1, 0), c(1, 1, 0), c(1, 0, 0)],
+                    [c(0, 0, 1), c(1, 0, 1), c(1, 1, 1), c(0, 1, 1)],
+                    [c(0, 0, 0), c(1, 0, 0), c(1, 0, 1), c(0, 0, 1)],
+                    [c(0, 1, 0), c(0, 1, 1), c(1, 1, 1), c(1, 1, 0)],
+                    [c(0, 0, 0), c(0, 0, 1), c(0, 1, 1), c(0, 1, 0)],
+                    [c(1, 0, 0), c(1, 1, 0), c(1, 1, 1), c(1, 0, 1)],
+                ];
+                for q in quads {
+                    add_tri(&mut verts, q[0], q[1], q[2], pi, m);
+                    add_tri(&mut verts, q[0], q[2], q[3], pi, m);
+                }
+            }
+            Shape::Cylinder {
+                base,
+                radius,
+                height,
+            } => {
+                let n = 16;
+                let p = |k: usize, z: f64| {
+                    let a = std::f64::consts::TAU * k as f64 / n as f64;
+                    base + DVec3::new(radius * a.cos(), radius * a.sin(), z)
+                };
+                let top = base + DVec3::new(0.0, 0.0, height);
+                for k in 0..n {
+                    add_tri(
+                        &mut verts,
+                        p(k, 0.0),
+                        p(k + 1, 0.0),
+                        p(k + 1, height),
+                        pi,
+                        m,
+                    );
+                    add_tri(&mut verts, p(k, 0.0), p(k + 1, height), p(k, height), pi, m);
+                    add_tri(&mut verts, top, p(k, height), p(k + 1, height), pi, m);
+                    add_tri(&mut verts, base, p(k + 1, 0.0), p(k, 0.0), pi, m);
+                }
+            }
+            Shape::Sphere { center, radius } => {
+                let (nl, nm) = (10, 16);
+                let p = |i: usize, j: usize| {
+                    let th = std::f64::consts::PI * i as f64 / nl as f64;
+                    let ph = std::f64::consts::TAU * j as f64 / nm as f64;
+                    center + radius * DVec3::new(th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos())
+                };
+                for i in 0..nl {
+                    for j in 0..nm {
+                        if i > 0 {
+                            add_tri(&mut verts, p(i, j), p(i + 1, j), p(i, j + 1), pi, m);
+                        }
+                        if i + 1 < nl {
+                            add_tri(&mut verts, p(i, j + 1), p(i + 1, j), p(i + 1, j + 1), pi, m);
+                        }
+                    }
+                }
+            }
+            Shape::Triangle { a, b, c } => add_tri(&mut verts, a, b, c, pi, m),
+        }
+    }
+    let mut out = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment SiLVR synthetic world, {GENERATOR_VERSION}, seed {}\nelement vertex {}\nproperty double x\nproperty double y\nproperty double z\nelement face {}\nproperty list uchar int vertex_indices\nproperty uchar label\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
+        world.seed,
+        verts.len(),
+        faces.len()
+    )
+    .into_bytes();
+    for v in &verts {
+        for c in v.to_array() {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    for (idx, label, rgb) in &faces {
+        out.push(3);
+        for i in idx {
+            out.extend_from_slice(&(*i as i32).to_le_bytes());
+        }
+        out.push(*label);
+        out.extend_from_slice(rgb);
+    }
+    out
+}

@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# Installs what SiLVR Studio's build and tests need, skipping whatever is already there.
+# Debian bookworm (root): Mesa 25 lavapipe from bookworm-backports (4-7x faster than bookworm's Mesa 22),
+# Chromium + ChromeDriver for browser tests, clang (mcap's lz4/zstd for wasm32), the wasm32 target,
+# wasm-bindgen-cli pinned to the crate's version, trunk, and the npm packages of web/ (binaryen 132, playwright-core).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+log() { printf '\033[1m[setup]\033[0m %s\n' "$*"; }
+SUDO=""
+[ "$(id -u)" = 0 ] || SUDO="sudo"
+
+need_apt=()
+for p in chromium chromium-driver clang vulkan-tools; do
+  dpkg -s "$p" >/dev/null 2>&1 || need_apt+=("$p")
+done
+mesa_ok=0
+if dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null | grep -qE '^(2[5-9]|[3-9][0-9])\.'; then mesa_ok=1; fi
+
+if [ ${#need_apt[@]} -gt 0 ] || [ $mesa_ok = 0 ]; then
+  if command -v apt-get >/dev/null; then
+    if [ $mesa_ok = 0 ] && [ -f /etc/apt/sources.list.d/debian.sources ] && \
+       grep -q 'bookworm' /etc/apt/sources.list.d/debian.sources && \
+       [ ! -f /etc/apt/sources.list.d/bookworm-backports.sources ]; then
+      log "adding bookworm-backports (for Mesa 25)"
+      awk 'BEGIN{RS="";ORS="\n\n"} /Suites: bookworm bookworm-updates/' /etc/apt/sources.list.d/debian.sources \
+        | sed 's/^Suites: .*/Suites: bookworm-backports/' | $SUDO tee /etc/apt/sources.list.d/bookworm-backports.sources >/dev/null
+    fi
+    log "apt-get install ${need_apt[*]} (and Mesa lavapipe)"
+    $SUDO apt-get update -qq
+    [ ${#need_apt[@]} -gt 0 ] && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need_apt[@]}" >/dev/null
+    if [ $mesa_ok = 0 ]; then
+      if [ -f /etc/apt/sources.list.d/bookworm-backports.sources ]; then
+        $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq -t bookworm-backports \
+          mesa-vulkan-drivers libegl-mesa0 libgl1-mesa-dri libglx-mesa0 libgbm1 >/dev/null
+      else
+        $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mesa-vulkan-drivers >/dev/null
+      fi
+    fi
+  else
+    log "warning: no apt-get; install a Vulkan driver (Mesa lavapipe), chromium, chromedriver and clang yourself"
+  fi
+fi
+
+rustup target list --installed 2>/dev/null | grep -q wasm32-unknown-unknown || { log "rustup target add wasm32"; rustup target add wasm32-unknown-unknown; }
+
+if ! (command -v wasm-bindgen >/dev/null && wasm-bindgen --version | grep -q ' 0.2.130'); then
+  log "cargo install wasm-bindgen-cli 0.2.130 (~2 min)"
+  cargo install -q wasm-bindgen-cli --version 0.2.130 --force
+fi
+if ! (command -v trunk >/dev/null && trunk --version | grep -q ' 0.21.14'); then
+  log "cargo install trunk 0.21.14 (~7 min)"
+  cargo install -q trunk --version 0.21.14 --locked --force
+fi
+
+if [ ! -x web/node_modules/.bin/wasm-opt ] || [ web/package-lock.json -nt web/node_modules/.package-lock.json ]; then
+  log "npm ci (web/: binaryen, playwright-core)"
+  npm ci --prefix web --no-audit --no-fund --loglevel=error
+fi
+log "ready"

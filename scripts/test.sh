@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# SiLVR Studio's test command (README): native tests with the WGSL kernels on wgpu (lavapipe where there is
+# no GPU), the wasm32 build of the engine, and the browser tests (studio page + wasm-bindgen-test in Chromium).
+# Installs missing tools first (scripts/setup.sh skips what is present).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+[ "${SILVR_SKIP_SETUP:-0}" = 1 ] || scripts/setup.sh
+
+# Kernels must really run: a missing adapter fails the GPU tests instead of skipping them.
+export SILVR_REQUIRE_GPU=1
+# Prefer Vulkan (lavapipe or a real GPU); wgpu's GL path compiles shaders for minutes on llvmpipe.
+export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
+
+echo "== native tests (cargo test --workspace)"
+cargo build -q -p silvr
+cargo test --workspace
+
+echo "== engine builds for wasm32 with no native-only dependency"
+cargo build -q -p silvr-core --target wasm32-unknown-unknown
+
+echo "== browser tests"
+scripts/browser-tests.sh
+echo "== all tests passed"

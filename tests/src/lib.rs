@@ -1,0 +1,45 @@
+//! Helpers shared by the end-to-end tests in `tests/tests/`.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+/// The `silvr` binary built by cargo for this test run.
+pub fn silvr_bin() -> PathBuf {
+    let mut p = workspace_root().join("target");
+    if let Ok(dir) = std::env::var("CARGO_TARGET_DIR") {
+        p = PathBuf::from(dir);
+    }
+    let profile = if cfg!(debug_assertions) {
+        "debug"
+    } else {
+        "release"
+    };
+    p.join(profile).join("silvr")
+}
+
+/// Builds the `silvr` binary (once per test process is enough; cargo makes repeats cheap).
+pub fn build_silvr() -> PathBuf {
+    let mut cmd = Command::new(env!("CARGO"));
+    cmd.current_dir(workspace_root())
+        .args(["build", "-q", "-p", "silvr"]);
+    if !cfg!(debug_assertions) {
+        cmd.arg("--release");
+    }
+    let status = cmd.status().expect("running cargo build");
+    assert!(status.success(), "cargo build -p silvr failed");
+    silvr_bin()
+}
+
+/// The repository root.
+pub fn workspace_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("tests/ has a parent")
+        .to_path_buf()
+}
+
+/// `../shared` beside the repository, where third-party test data lives (may be absent).
+pub fn shared_dir() -> Option<PathBuf> {
+    let p = workspace_root().join("..").join("shared");
+    p.is_dir().then_some(p)
+}

@@ -1,0 +1,160 @@
+//! What the worker sends (the page's view of `silvr_worker::ToPage`) and how the page words it.
+//!
+//! The page does not link the engine: it mirrors only the fields it shows, and ignores the rest.
+
+#![cfg_attr(not(target_arch = "wasm32"), allow(dead_code))]
+
+use serde::{Deserialize, Serialize};
+
+/// Messages to the worker (`silvr_worker::FromPage`).
+#[derive(Clone, Debug, Serialize)]
+#[serde(tag = "type", rename_all = "kebab-case")]
+pub enum ToWorker {
+    /// Run the projection self-check again.
+    RunCheck { id: u32, n: usize, seed: u64 },
+}
+
+/// Messages from the worker.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(tag = "type", rename_all = "kebab-case")]
+pub enum FromWorker {
+    Adapter {
+        adapter: Adapter,
+    },
+    Projection {
+        id: Option<u32>,
+        seed: u64,
+        n: usize,
+        elapsed_ms: f64,
+        passed: bool,
+        check: Check,
+    },
+    Error {
+        id: Option<u32>,
+        stage: String,
+        message: String,
+    },
+}
+
+/// `silvr_core::gpu::AdapterReport`, as far as the page shows it.
+#[derive(Clone, Debug, Deserialize)]
+pub struct Adapter {
+    pub name: String,
+    pub backend: String,
+    pub device_type: String,
+    #[serde(default)]
+    pub driver: String,
+    #[serde(default)]
+    pub driver_info: String,
+    pub software: bool,
+    #[serde(default)]
+    pub max_storage_buffer_binding_size: f64,
+    #[serde(default)]
+    pub max_compute_invocations_per_workgroup: u32,
+}
+
+/// `silvr_core::lidar::project::SelfCheck`.
+#[derive(Clone, Debug, Deserialize)]
+pub struct Check {
+    pub points: usize,
+    pub pixels: usize,
+    pub filled_pixels: usize,
+    pub winner_mismatches: usize,
+    pub max_uv_error_px: f64,
+    pub max_range_rel_error: f64,
+}
+
+/// `1234567` → `"1,234,567"`.
+pub fn group_digits(n: u64) -> String {
+    let s = n.to_string();
+    let mut out = String::with_capacity(s.len() + s.len() / 3);
+    for (i, c) in s.chars().enumerate() {
+        if i > 0 && (s.len() - i) % 3 == 0 {
+            out.push(',');
+        }
+        out.push(c);
+    }
+    out
+}
+
+/// A file size for people: exact bytes, and a binary-prefixed approximation above 1 KiB.
+pub fn describe_size(bytes: u64) -> String {
+    let exact = format!(
+        "{} {}",
+        group_digits(bytes),
+        if bytes == 1 { "byte" } else { "bytes" }
+    );
+    const UNITS: [&str; 4] = ["KiB", "MiB", "GiB", "TiB"];
+    if bytes < 1024 {
+        return exact;
+    }
+    let mut v = bytes as f64 / 1024.0;
+    let mut unit = 0;
+    while v >= 1024.0 && unit + 1 < UNITS.len() {
+        v /= 1024.0;
+        unit += 1;
+    }
+    format!("{exact} ({v:.1} {})", UNITS[unit])
+}
+
+/// What a worker error means for someone looking at the page.
+pub fn explain_error(stage: &str, message: &str) -> String {
+    match stage {
+        "webgpu" => format!(
+            "WebGPU is not available, so SiLVR Studio cannot run its GPU engine here. Use a recent \
+             Chrome or Edge (or Chromium with --enable-unsafe-webgpu), or Firefox/Safari with WebGPU \
+             enabled. Details: {message}"
+        ),
+        "panic" => format!("The engine worker crashed; reload the page. Details: {message}"),
+        _ => message.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes_are_exact_and_readable() {
+        assert_eq!(describe_size(0), "0 bytes");
+        assert_eq!(describe_size(1), "1 byte");
+        assert_eq!(describe_size(1023), "1,023 bytes");
+        assert_eq!(describe_size(100_000), "100,000 bytes (97.7 KiB)");
+        assert_eq!(describe_size(5 << 30), "5,368,709,120 bytes (5.0 GiB)");
+        assert_eq!(group_digits(999), "999");
+        assert_eq!(group_digits(1_000), "1,000");
+        assert_eq!(group_digits(12_345_678), "12,345,678");
+    }
+
+    #[test]
+    fn run_check_request_is_tagged() {
+        let v = serde_json::to_value(ToWorker::RunCheck {
+            id: 3,
+            n: 20_000,
+            seed: 3,
+        })
+        .unwrap();
+        assert_eq!(v["type"], "run-check");
+        assert_eq!(v["id"], 3);
+        assert_eq!(v["n"], 20_000);
+    }
+
+    #[test]
+    fn worker_messages_parse() {
+        let m: FromWorker = serde_json::from_str(
+            r#"{"type":"adapter","adapter":{"name":"SwiftShader","backend":"BrowserWebGpu",
+                "device_type":"Cpu","driver":"","driver_info":"","software":true,
+                "max_storage_buffer_binding_size":1073741824,"max_buffer_size":1073741824,
+                "max_compute_workgroup_storage_size":32768,"max_compute_invocations_per_workgroup":256}}"#,
+        )
+        .unwrap();
+        assert!(matches!(m, FromWorker::Adapter { adapter } if adapter.software));
+        let m: FromWorker = serde_json::from_str(
+            r#"{"type":"projection","id":null,"seed":7,"n":4000,"elapsed_ms":12,"passed":true,
+                "check":{"points":4000,"pixels":97200,"filled_pixels":3000,"winner_mismatches":0,
+                "max_uv_error_px":0.0001,"max_range_rel_error":1e-7}}"#,
+        )
+        .unwrap();
+        assert!(matches!(m, FromWorker::Projection { passed: true, .. }));
+    }
+}

@@ -1,0 +1,207 @@
+//! SiLVR Studio's Web Worker: the engine on WebGPU, off the page's main thread.
+//!
+//! The page starts it with `new Worker("./worker_loader.js")` (trunk's loader shim for the `worker` binary).
+//! It talks to the page with plain JS objects tagged by `type` (see [`ToPage`] and [`FromPage`]):
+//!
+//! | direction | message |
+//! |---|---|
+//! | worker → page | `{type: "adapter", adapter: AdapterReport}` once WebGPU gave a device |
+//! | worker → page | `{type: "projection", id, seed, n, elapsed_ms, passed, check: SelfCheck}` after each kernel self-check (`id` is `null` for the one at startup) |
+//! | worker → page | `{type: "error", id, stage, message}`: `stage` is `"webgpu"` (no usable adapter), `"projection"`, `"message"` (a message the worker does not understand) or `"panic"` |
+//! | page → worker | `{type: "run-check", id?, n?, seed?}`: run the projection self-check again |
+//!
+//! Natively the crate builds (the message types and [`run_check`] are plain Rust) but the `worker` binary
+//! does nothing: the browser is its only home.
+
+use serde::{Deserialize, Serialize};
+use silvr_core::camera::{CameraModel, Distortion};
+use silvr_core::gpu::{AdapterReport, Gpu};
+use silvr_core::lidar::project::{self, SelfCheck};
+
+#[cfg(target_arch = "wasm32")]
+mod web;
+#[cfg(target_arch = "wasm32")]
+pub use web::start;
+
+/// Seed of the self-check the worker runs at startup.
+pub const STARTUP_SEED: u64 = 7;
+/// Points of the startup self-check: small, because SwiftShader is slow.
+pub const STARTUP_POINTS: usize = 4000;
+/// Largest self-check the page may ask for.
+pub const MAX_CHECK_POINTS: usize = 2_000_000;
+
+/// The camera the self-check projects into: the Spires front fisheye at a quarter of its resolution
+/// (the same one as `silvr gpu-info`).
+pub fn check_camera() -> CameraModel {
+    CameraModel {
+        width: 360,
+        height: 270,
+        fx: 174.54,
+        fy: 174.63,
+        cx: 177.82,
+        cy: 139.77,
+        distortion: Distortion::Fisheye {
+            k1: -0.041142,
+            k2: -0.002422,
+            k3: 0.003400,
+            k4: -0.001852,
+        },
+    }
+}
+
+/// Where an error happened, for the page to word it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Stage {
+    /// No WebGPU adapter, or it is too limited, or no device could be opened.
+    Webgpu,
+    /// The projection self-check could not run.
+    Projection,
+    /// The page sent something the worker does not understand.
+    Message,
+    /// The worker panicked; it is dead afterwards.
+    Panic,
+}
+
+/// Messages from the worker to the page.
+#[derive(Debug, Serialize)]
+#[serde(tag = "type", rename_all = "kebab-case")]
+pub enum ToPage {
+    Adapter {
+        adapter: AdapterReport,
+    },
+    Projection {
+        id: Option<u32>,
+        seed: u64,
+        n: usize,
+        elapsed_ms: f64,
+        passed: bool,
+        check: SelfCheck,
+    },
+    Error {
+        id: Option<u32>,
+        stage: Stage,
+        message: String,
+    },
+}
+
+/// Messages from the page to the worker.
+#[derive(Clone, Debug, PartialEq, Eq, Deserialize)]
+#[serde(tag = "type", rename_all = "kebab-case")]
+pub enum FromPage {
+    /// Runs the projection self-check (defaults: [`STARTUP_POINTS`] points, seed [`STARTUP_SEED`]).
+    RunCheck {
+        #[serde(default)]
+        id: Option<u32>,
+        #[serde(default)]
+        n: Option<usize>,
+        #[serde(default)]
+        seed: Option<u64>,
+    },
+}
+
+/// Runs the projection kernel against its CPU reference on `n` generated points and words the outcome
+/// as a message for the page.
+pub async fn run_check(gpu: &Gpu, id: Option<u32>, n: usize, seed: u64) -> ToPage {
+    if n > MAX_CHECK_POINTS {
+        return ToPage::Error {
+            id,
+            stage: Stage::Projection,
+            message: format!(
+                "a self-check takes at most {MAX_CHECK_POINTS} points, {n} were asked for"
+            ),
+        };
+    }
+    let start = now_ms();
+    match project::self_check(gpu, &check_camera(), seed, n).await {
+        Ok(check) => ToPage::Projection {
+            id,
+            seed,
+            n,
+            elapsed_ms: now_ms() - start,
+            passed: check.passed(),
+            check,
+        },
+        Err(e) => ToPage::Error {
+            id,
+            stage: Stage::Projection,
+            message: format!("the projection kernel could not run: {e}"),
+        },
+    }
+}
+
+/// Answers one message from the page.
+pub async fn handle(gpu: &Gpu, msg: FromPage) -> ToPage {
+    match msg {
+        FromPage::RunCheck { id, n, seed } => {
+            run_check(
+                gpu,
+                id,
+                n.unwrap_or(STARTUP_POINTS),
+                seed.unwrap_or(STARTUP_SEED),
+            )
+            .await
+        }
+    }
+}
+
+#[cfg(target_arch = "wasm32")]
+fn now_ms() -> f64 {
+    js_sys::Date::now()
+}
+
+#[cfg(not(target_arch = "wasm32"))]
+fn now_ms() -> f64 {
+    use std::time::{SystemTime, UNIX_EPOCH};
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs_f64() * 1e3)
+        .unwrap_or(0.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn check_camera_is_valid() {
+        check_camera().validate().unwrap();
+    }
+
+    #[test]
+    fn page_messages_parse_with_defaults() {
+        let m: FromPage = serde_json::from_str(r#"{"type":"run-check"}"#).unwrap();
+        assert_eq!(
+            m,
+            FromPage::RunCheck {
+                id: None,
+                n: None,
+                seed: None
+            }
+        );
+        let m: FromPage =
+            serde_json::from_str(r#"{"type":"run-check","id":2,"n":500,"seed":9}"#).unwrap();
+        assert_eq!(
+            m,
+            FromPage::RunCheck {
+                id: Some(2),
+                n: Some(500),
+                seed: Some(9)
+            }
+        );
+        assert!(serde_json::from_str::<FromPage>(r#"{"type":"bogus"}"#).is_err());
+    }
+
+    #[test]
+    fn worker_messages_are_tagged_by_type() {
+        let msg = ToPage::Error {
+            id: Some(3),
+            stage: Stage::Projection,
+            message: "x".into(),
+        };
+        let v = serde_json::to_value(&msg).unwrap();
+        assert_eq!(v["type"], "error");
+        assert_eq!(v["stage"], "projection");
+        assert_eq!(v["id"], 3);
+    }
+}
