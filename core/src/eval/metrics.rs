@@ -7,12 +7,12 @@
 //! voxel downsample → (optionally) drop points the sensor never observed (the SiLVR paper's symmetric
 //! filter) → distances → scores.
 
+use super::kdtree::KdTree;
 use super::occupancy::OccupancyGrid;
 use super::report::{threshold_key, GeometryReport, PointCounts, ThresholdScores};
 use super::EvalError;
 use crate::pointcloud::PointCloud;
 use glam::{DAffine3, DMat4, DVec3};
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -106,10 +106,10 @@ impl GeometryOptions {
     }
 }
 
-/// Nearest-neighbour distance queries against a fixed point set (kiddo's immutable KD-tree, which
-/// copes with the many identical coordinates of voxelised clouds).
+/// Nearest-neighbour distance queries against a fixed point set (a static KD-tree that stays fast
+/// on duplicate and coplanar points, see `kdtree.rs`; distances are exact, as with SciPy's cKDTree).
 pub struct NearestNeighbours {
-    tree: Option<ImmutableKdTree<f64, 3>>,
+    tree: KdTree,
 }
 
 impl NearestNeighbours {
@@ -120,8 +120,14 @@ impl NearestNeighbours {
             .filter(|p| p.is_finite())
             .map(|p| p.to_array())
             .collect();
-        let tree = (!pts.is_empty()).then(|| ImmutableKdTree::new_from_slice(&pts));
-        Self { tree }
+        Self {
+            tree: KdTree::new(pts),
+        }
+    }
+
+    /// Whether no point is indexed.
+    pub fn is_empty(&self) -> bool {
+        self.tree.is_empty()
     }
 
     /// Euclidean distance from `q` to the nearest indexed point: +∞ when nothing is indexed, NaN for a
@@ -130,13 +136,7 @@ impl NearestNeighbours {
         if !q.is_finite() {
             return f64::NAN;
         }
-        match &self.tree {
-            None => f64::INFINITY,
-            Some(t) => t
-                .nearest_one::<SquaredEuclidean>(&q.to_array())
-                .distance
-                .sqrt(),
-        }
+        self.tree.nearest_sq(q.to_array()).sqrt()
     }
 
     /// [`Self::distance`] for every query, in parallel (single-threaded on wasm32).

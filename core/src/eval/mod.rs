@@ -11,6 +11,7 @@
 //! ([`OccupancyGrid::save`]); [`evaluate_files`] reads both.
 
 pub mod image;
+mod kdtree;
 pub mod metrics;
 pub mod occupancy;
 pub mod report;

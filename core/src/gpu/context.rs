@@ -55,7 +55,7 @@ pub enum GpuError {
 }
 
 /// How to choose an adapter.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct GpuOptions {
     /// Backends to try natively; `None` honours `WGPU_BACKEND` and otherwise tries Vulkan, Metal and DX12.
     pub backends: Option<wgpu::Backends>,
@@ -64,16 +64,6 @@ pub struct GpuOptions {
     /// Fill every buffer a kernel writes with this 32-bit pattern before it runs. Tests set it so that a
     /// kernel which forgets to write an element is caught, instead of being hidden by zero-initialised memory.
     pub poison: Option<u32>,
-}
-
-impl Default for GpuOptions {
-    fn default() -> Self {
-        Self {
-            backends: None,
-            require_hardware: false,
-            poison: None,
-        }
-    }
 }
 
 /// What adapter we run on, for logs, the CLI's `gpu-info`, the studio page and benchmark records.
@@ -152,10 +142,12 @@ impl Gpu {
         }
         let have = adapter.limits();
         check_baseline(&report.name, &have)?;
-        let mut limits = wgpu::Limits::default();
         // Large scenes need big storage buffers: take what the adapter offers.
-        limits.max_storage_buffer_binding_size = have.max_storage_buffer_binding_size;
-        limits.max_buffer_size = have.max_buffer_size;
+        let limits = wgpu::Limits {
+            max_storage_buffer_binding_size: have.max_storage_buffer_binding_size,
+            max_buffer_size: have.max_buffer_size,
+            ..Default::default()
+        };
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("silvr"),

@@ -57,15 +57,85 @@ pub fn newell(polygon: &[DVec3]) -> DVec3 {
     n
 }
 
+/// How [`newell_normals`] picks and screens neighbours.
+#[derive(Clone, Copy, Debug)]
+pub struct NormalParams {
+    /// Column offset of the horizontal neighbours. Rings are usually several times further apart in angle
+    /// than columns; stepping `k` columns makes the neighbourhood roughly square, so range noise tilts the
+    /// normal about equally little in both directions ([`RangeImage::balanced_column_step`]).
+    pub column_step: usize,
+    /// A neighbour whose offset from the point is within this angle (rad) of the viewing ray is taken to be
+    /// across a depth discontinuity (a foreground edge against the background) and left out. Surfaces seen
+    /// at grazing incidence (the road far ahead) are rejected by the same rule, and their normals are
+    /// unreliable anyway.
+    pub min_offset_angle: f64,
+}
+
+impl Default for NormalParams {
+    fn default() -> Self {
+        Self {
+            column_step: 1,
+            min_offset_angle: 5f64.to_radians(),
+        }
+    }
+}
+
+impl RangeImage {
+    /// The column step that best matches the ring spacing, estimated from the points themselves
+    /// (median elevation per ring, azimuth step = 360° / columns), so it works for any sensor.
+    pub fn balanced_column_step(&self, positions: &[DVec3]) -> usize {
+        let mut el: Vec<Vec<f64>> = vec![Vec::new(); self.rings];
+        for (cell, i) in self.cells.iter().enumerate() {
+            if let Some(i) = i {
+                let p = positions[*i as usize];
+                if p.is_finite() && p.length() > 0.0 {
+                    el[cell / self.columns].push((p.z / p.length()).asin());
+                }
+            }
+        }
+        let med: Vec<f64> = el
+            .into_iter()
+            .filter(|v| !v.is_empty())
+            .map(|mut v| {
+                let m = v.len() / 2;
+                v.select_nth_unstable_by(m, f64::total_cmp);
+                v[m]
+            })
+            .collect();
+        if med.len() < 2 || self.columns == 0 {
+            return 1;
+        }
+        let mut steps: Vec<f64> = med.windows(2).map(|w| (w[1] - w[0]).abs()).collect();
+        let m = steps.len() / 2;
+        steps.select_nth_unstable_by(m, f64::total_cmp);
+        let az = std::f64::consts::TAU / self.columns as f64;
+        ((steps[m] / az).round() as usize).clamp(1, 16)
+    }
+}
+
 /// Per-point unit normals (NaN where undefined) for points in a frame whose origin is the sensor.
-/// `positions[i]` sits at cell (ring[i], column[i]) of `image`.
+/// `positions[i]` sits at cell (ring[i], column[i]) of `image`. The neighbourhood is the 8 cells around
+/// the point (columns `column_step` apart) in cyclic order; at least 3 must survive the screening.
 pub fn newell_normals(
     positions: &[DVec3],
     image: &RangeImage,
     ring: &[u16],
     column: &[u16],
-    max_jump: f64,
+    params: NormalParams,
 ) -> Vec<DVec3> {
+    let k = params.column_step.max(1) as isize;
+    let cos_min = params.min_offset_angle.cos();
+    // Counter-clockwise in (column, ring): right, up-right, up, up-left, left, down-left, down, down-right.
+    let ring_of = [
+        (0, k),
+        (1, k),
+        (1, 0),
+        (1, -k),
+        (0, -k),
+        (-1, -k),
+        (-1, 0),
+        (-1, k),
+    ];
     positions
         .iter()
         .enumerate()
@@ -74,14 +144,14 @@ pub fn newell_normals(
                 return DVec3::NAN;
             }
             let (r, c) = (ring[i] as isize, column[i] as isize);
-            let range = p.length();
-            // Rings go up with elevation and columns counter-clockwise, so up, left(+col), down, right(-col)
-            // is a consistent cyclic order; orientation is fixed afterwards anyway.
-            let mut poly = Vec::with_capacity(4);
-            for (dr, dc) in [(1, 0), (0, 1), (-1, 0), (0, -1)] {
+            let ray = p.normalize();
+            let mut poly = Vec::with_capacity(8);
+            for (dr, dc) in ring_of {
                 if let Some(j) = image.get(r + dr, c + dc) {
                     let q = positions[j as usize];
-                    if q.is_finite() && ((q.length() - range).abs() / range) <= max_jump {
+                    let off = q - p;
+                    let len = off.length();
+                    if q.is_finite() && len > 0.0 && (off.dot(ray) / len).abs() < cos_min {
                         poly.push(q);
                     }
                 }
@@ -139,16 +209,22 @@ mod tests {
             }
         }
         let img = RangeImage::new(rings, 360, &ring, &col);
-        let n = newell_normals(&pos, &img, &ring, &col, 0.2);
+        let params = NormalParams::default();
+        let n = newell_normals(&pos, &img, &ring, &col, params);
         let centre = 2 * cols + 3;
         assert!((n[centre] + DVec3::X).length() < 1e-9, "{}", n[centre]);
-        // A corner point has only two neighbours: undefined.
-        assert!(n[0].is_nan());
-        // A depth jump excludes a neighbour.
+        // A corner point has three neighbours (right, up-right, up): still enough.
+        assert!((n[0] + DVec3::X).length() < 1e-9, "{}", n[0]);
+        // Neighbours across a depth jump are left out: with the whole right and left columns pushed far
+        // back only the two vertical neighbours remain, too few for a normal.
         let mut far = pos.clone();
-        far[centre + 1] *= 3.0;
-        far[centre - 1] *= 3.0;
-        let n = newell_normals(&far, &img, &ring, &col, 0.2);
-        assert!(n[centre].is_nan());
+        for r in 1..4 {
+            far[r * cols + 4] *= 10.0;
+            far[r * cols + 2] *= 10.0;
+        }
+        let n = newell_normals(&far, &img, &ring, &col, params);
+        assert!(n[centre].is_nan(), "{}", n[centre]);
+        // Rings 0.05 rad apart, columns 2π/360 apart: about 3 columns per ring.
+        assert_eq!(img.balanced_column_step(&pos), 3);
     }
 }

@@ -73,24 +73,21 @@ pub fn sky_mask(input: &SkyInput, params: SkyParams) -> Vec<bool> {
     // 1. Beam geometry from the returns.
     let mut ring_el: Vec<Vec<f64>> = vec![Vec::new(); img.rings];
     let mut col_az: Vec<Vec<f64>> = vec![Vec::new(); img.columns];
-    for r in 0..img.rings {
-        for c in 0..img.columns {
-            if let Some(i) = img.cells[r * img.columns + c] {
-                let p = input.points[i as usize];
-                if p.is_finite() && p.length() > 0.0 {
-                    ring_el[r].push((p.z / p.length()).asin());
-                    col_az[c].push(p.y.atan2(p.x));
-                }
-            }
+    for (cell, i) in img.cells.iter().enumerate() {
+        let Some(i) = i else { continue };
+        let p = input.points[*i as usize];
+        if p.is_finite() && p.length() > 0.0 {
+            ring_el[cell / img.columns].push((p.z / p.length()).asin());
+            col_az[cell % img.columns].push(p.y.atan2(p.x));
         }
     }
     let ring_el: Vec<Option<f64>> = ring_el.into_iter().map(median).collect();
     let mut col_az: Vec<Option<f64>> = col_az.into_iter().map(median).collect();
     // Columns with no return at all (open sky all round) take the azimuth their neighbours imply.
     let n_cols = img.columns;
-    for c in 0..n_cols {
-        if col_az[c].is_none() {
-            col_az[c] = Some(std::f64::consts::TAU * c as f64 / n_cols as f64);
+    for (c, az) in col_az.iter_mut().enumerate() {
+        if az.is_none() {
+            *az = Some(std::f64::consts::TAU * c as f64 / n_cols as f64);
         }
     }
     let top_el = ring_el
@@ -101,13 +98,13 @@ pub fn sky_mask(input: &SkyInput, params: SkyParams) -> Vec<bool> {
     // 2. Evidence cells.
     let mut seeds: Vec<(usize, usize)> = Vec::new();
     let r_cam = input.t_cam_lidar;
-    for c in 0..n_cols {
+    for (c, az) in col_az.iter().enumerate() {
         let mut clear_above = true;
         for r in (0..img.rings).rev() {
             if img.cells[r * n_cols + c].is_some() {
                 clear_above = false;
             }
-            let (Some(el), Some(az)) = (ring_el[r], col_az[c]) else {
+            let (Some(el), Some(az)) = (ring_el[r], *az) else {
                 continue;
             };
             if !clear_above || el <= 0.0 {

@@ -215,7 +215,11 @@ pub async fn generate(
             &ring,
             &column,
         );
-        let nrm = normals::newell_normals(&desk.positions, &rimg, &ring, &column, 0.1);
+        let nparams = normals::NormalParams {
+            column_step: rimg.balanced_column_step(&desk.positions),
+            ..Default::default()
+        };
+        let nrm = normals::newell_normals(&desk.positions, &rimg, &ring, &column, nparams);
 
         // Ground truth of what the lidar observed: exact returns, and free space along their rays.
         let exact = simulate_sweep(
@@ -230,16 +234,18 @@ pub async fn generate(
             },
             seed_k,
         );
-        let mut ends = Vec::with_capacity(exact.points.len());
-        for p in &exact.points {
-            let pose = preset.t_world_lidar(p.time);
-            let w = pose.transform_point(p.position);
-            seen.insert(vkey(w));
-            ends.push((pose.trans, w));
+        // Free space along the rays: one discretised scan per sweep from the sensor's mid-sweep position
+        // (OctoMap-style, each free voxel updated once). The true origins differ by at most half a sweep of
+        // motion (~7 cm), below the grid's 10 cm; the occupied endpoints are exact.
+        let ends: Vec<DVec3> = exact
+            .points
+            .iter()
+            .map(|p| preset.t_world_lidar(p.time).transform_point(p.position))
+            .collect();
+        for w in &ends {
+            seen.insert(vkey(*w));
         }
-        for (origin, end) in ends {
-            observed.insert_ray(origin, end, true);
-        }
+        observed.insert_scan(t_world_lidar.trans, &ends);
 
         for (ci, cam) in preset.rig.cameras.iter().enumerate() {
             let t_world_cam = t_world_lidar * cam.t_lidar_cam;
@@ -286,8 +292,9 @@ pub async fn generate(
                 format!("gt/semantic/{cn}/{name}.png"),
                 &png_gray8(w, h, &frame.label),
             )?;
-            // What the camera observed: every pixel's surface; free space along every 3rd pixel's ray.
+            // What the camera observed: every pixel's surface; free space along every 4th pixel's ray (in x and y).
             let max_angle = model.valid_angle();
+            let mut cam_ends = Vec::new();
             for y in 0..h {
                 for x in 0..w {
                     let i = (y * w + x) as usize;
@@ -302,11 +309,13 @@ pub async fn generate(
                     };
                     let p = t_world_cam.transform_point(dir * r);
                     seen.insert(vkey(p));
-                    if x % 3 == 0 && y % 3 == 0 {
-                        observed.insert_ray(t_world_cam.trans, p, true);
+                    if x % 4 == 0 && y % 4 == 0 {
+                        cam_ends.push(p);
                     }
                 }
             }
+
+            observed.insert_scan(t_world_cam.trans, &cam_ends);
 
             // Lidar supervision for this camera, exactly as for real data.
             let t_cam_lidar = cam.t_lidar_cam.inverse();

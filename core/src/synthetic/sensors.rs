@@ -131,8 +131,9 @@ pub fn simulate_sweep(
     let columns: Vec<Vec<LidarPoint>> = (0..spec.columns)
         .into_par_iter()
         .map(|col| {
-            let mut rng =
-                Xoshiro256PlusPlus::seed_from_u64(seed ^ ((col as u64 + 1) * 0x9E37_79B9));
+            let mut rng = Xoshiro256PlusPlus::seed_from_u64(
+                seed ^ (col as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+            );
             let time = t0 + spec.column_time(col);
             let pose = pose_at(frozen.unwrap_or(time));
             let mut out = Vec::with_capacity(spec.beams as usize);
@@ -223,7 +224,7 @@ pub fn render_camera(
         .into_par_iter()
         .map(|y| {
             let mut rng = Xoshiro256PlusPlus::seed_from_u64(
-                opts.seed ^ ((y as u64 + 1) * 0xD1B5_4A32_D192_ED03),
+                opts.seed ^ (y as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03),
             );
             let mut rgb = Vec::with_capacity(w as usize);
             let mut range = Vec::with_capacity(w as usize);

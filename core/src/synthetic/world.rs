@@ -331,7 +331,11 @@ impl World {
             // Spread along the outer kerb, 0.5 m from the road edge, alternating north/south sides.
             let x =
                 -ox + 2.0 + (2.0 * ox - 4.0) * (i as f64 + rng.random_range(0.2..0.8)) / n as f64;
-            let y = if i % 2 == 0 { -oy - 0.5 } else { oy + 0.5 };
+            let y = if i.is_multiple_of(2) {
+                -oy - 0.5
+            } else {
+                oy + 0.5
+            };
             DVec2::new(x, y)
         };
         for i in 0..params.n_poles {
@@ -501,7 +505,7 @@ impl World {
                 let u = if n.x.abs() > 0.5 { p.y } else { p.x };
                 let win = (u.rem_euclid(2.5) > 0.6) && (p.z.rem_euclid(3.5) > 1.0) && n.z < 0.5;
                 if win {
-                    Vec3::new(0.10, 0.14, 0.20)
+                    Vec3::new(0.12, 0.13, 0.15)
                 } else {
                     Vec3::splat(0.6)
                 }
