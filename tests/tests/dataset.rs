@@ -1,0 +1,192 @@
+//! The synthetic dataset on disk: lidar products against ground truth, determinism, and broken files.
+//! Generation runs the projection kernel through wgpu (lavapipe without a GPU).
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use silvr_core::dataset::{read_gray8, read_png16, read_rgb};
+use silvr_core::gpu::{Gpu, GpuOptions};
+use silvr_core::lidar::images::{decode_normal, SKY_DEPTH};
+use silvr_core::synthetic::generate::{generate, SynthError};
+use silvr_core::synthetic::world::Label;
+use silvr_core::synthetic::Preset;
+
+fn gpu() -> Gpu {
+    pollster::block_on(Gpu::new(GpuOptions::default())).expect("a GPU adapter (lavapipe is enough)")
+}
+
+/// A short `ci` world: 4 keyframes.
+fn small(seed: u64) -> Preset {
+    let mut p = Preset::ci(seed);
+    p.keyframes = 4;
+    p
+}
+
+fn make(preset: &Preset, out: &Path) -> Result<PathBuf, SynthError> {
+    pollster::block_on(generate(preset, &gpu(), out, false, &mut |_| {})).map(|s| s.path)
+}
+
+/// One dataset shared by the read-only tests of this file.
+fn shared() -> &'static Path {
+    static DIR: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    &DIR.get_or_init(|| {
+        let tmp = tempfile::tempdir().unwrap();
+        let path = make(&small(1), &tmp.path().join("ds")).unwrap();
+        (tmp, path)
+    })
+    .1
+}
+
+fn frames(ds: &Path) -> Vec<(String, String)> {
+    let mut v = Vec::new();
+    for cam in ["cam_front", "cam_left", "cam_right"] {
+        for k in 0..4 {
+            v.push((cam.to_string(), format!("{k:05}")));
+        }
+    }
+    let _ = ds;
+    v
+}
+
+#[test]
+fn lidar_normals_on_the_road_match_ground_truth() {
+    let ds = shared();
+    let mut errs = Vec::new();
+    for (cam, k) in frames(ds) {
+        let (_, _, lidar) = read_rgb(&ds.join(format!("lidar_normals/{cam}/{k}.png"))).unwrap();
+        let (_, _, gt) = read_rgb(&ds.join(format!("gt/normals/{cam}/{k}.png"))).unwrap();
+        let (_, _, sem) = read_gray8(&ds.join(format!("gt/semantic/{cam}/{k}.png"))).unwrap();
+        for i in 0..lidar.len() {
+            if sem[i] != Label::Road as u8 {
+                continue;
+            }
+            if let (Some(a), Some(b)) = (decode_normal(lidar[i]), decode_normal(gt[i])) {
+                errs.push(a.angle_between(b).to_degrees());
+            }
+        }
+    }
+    errs.sort_by(f64::total_cmp);
+    assert!(errs.len() > 1000, "{} road pixels with lidar normals", errs.len());
+    let median = errs[errs.len() / 2];
+    assert!(median < 3.0, "median road normal error {median}° over {} pixels", errs.len());
+}
+
+#[test]
+fn sky_masks_match_ground_truth() {
+    let ds = shared();
+    let (mut inter, mut union) = (0usize, 0usize);
+    for (cam, k) in frames(ds) {
+        let (_, _, m) = read_gray8(&ds.join(format!("sky_mask/{cam}/{k}.png"))).unwrap();
+        let (_, _, g) = read_gray8(&ds.join(format!("gt/sky/{cam}/{k}.png"))).unwrap();
+        let (_, _, d) = read_png16(&ds.join(format!("lidar_depth/{cam}/{k}.png"))).unwrap();
+        for i in 0..m.len() {
+            inter += (m[i] > 0 && g[i] > 0) as usize;
+            union += (m[i] > 0 || g[i] > 0) as usize;
+            // Sky pixels are also marked in the depth image (SiLVR's >= 250 m convention).
+            assert_eq!(m[i] > 0, d[i] == SKY_DEPTH, "{cam}/{k} pixel {i}");
+        }
+    }
+    let iou = inter as f64 / union as f64;
+    assert!(iou >= 0.9, "sky IoU {iou}");
+}
+
+#[test]
+fn lidar_depth_agrees_with_ground_truth_depth() {
+    let ds = shared();
+    let mut errs = Vec::new();
+    for (cam, k) in frames(ds) {
+        let (_, _, lidar) = read_png16(&ds.join(format!("lidar_depth/{cam}/{k}.png"))).unwrap();
+        let (_, _, gt) = read_png16(&ds.join(format!("gt/depth/{cam}/{k}.png"))).unwrap();
+        for i in 0..lidar.len() {
+            if lidar[i] != 0 && lidar[i] != SKY_DEPTH && gt[i] != 0 {
+                errs.push((lidar[i] as f64 - gt[i] as f64).abs() / 256.0);
+            }
+        }
+    }
+    errs.sort_by(f64::total_cmp);
+    assert!(errs.len() > 3000, "{} lidar depth pixels", errs.len());
+    // Range noise is 2 cm; the lidar point sits up to half a pixel away from the pixel centre.
+    let median = errs[errs.len() / 2];
+    assert!(median < 0.03, "median |lidar - GT| depth {median} m");
+}
+
+#[test]
+fn same_seed_gives_identical_bytes_and_another_seed_does_not() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = make(&small(1), &tmp.path().join("a")).unwrap();
+    let b = make(&small(2), &tmp.path().join("b")).unwrap();
+    let shared = shared();
+    let mut compared = 0;
+    for entry in walk(shared) {
+        let rel = entry.strip_prefix(shared).unwrap();
+        let x = std::fs::read(&entry).unwrap();
+        let y = std::fs::read(a.join(rel)).unwrap_or_else(|e| panic!("{}: {e}", rel.display()));
+        assert!(x == y, "{} differs between two runs with the same seed", rel.display());
+        compared += 1;
+    }
+    assert!(compared > 50, "{compared} files");
+    let mesh_a = std::fs::read(a.join("gt/mesh.ply")).unwrap();
+    let mesh_b = std::fs::read(b.join("gt/mesh.ply")).unwrap();
+    assert_ne!(mesh_a, mesh_b, "another seed must give another layout");
+}
+
+fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out.sort();
+    out
+}
+
+#[test]
+fn an_existing_output_is_refused_and_nothing_partial_is_left() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("taken");
+    std::fs::create_dir(&out).unwrap();
+    let err = make(&small(3), &out).unwrap_err().to_string();
+    assert!(err.contains("taken") && err.contains("already exists"), "{err}");
+    let left: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(left.len(), 1, "only the pre-existing folder remains: {left:?}");
+}
+
+#[test]
+fn corrupt_files_give_errors_that_name_them() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ds = tmp.path().join("copy");
+    copy_dir(shared(), &ds);
+    // A truncated sweep.
+    let sweep = ds.join("lidar/deskewed/00002.ply");
+    let bytes = std::fs::read(&sweep).unwrap();
+    std::fs::write(&sweep, &bytes[..bytes.len() / 2]).unwrap();
+    let err = silvr_core::lidar::map::lidar_map(&ds).unwrap_err().to_string();
+    assert!(err.contains("00002.ply"), "{err}");
+    // A corrupt pose file.
+    std::fs::write(ds.join("poses/lidar_tum.txt"), "0 1 2 3 x 0 0 1\n").unwrap();
+    let err = silvr_core::lidar::map::lidar_map(&ds).unwrap_err().to_string();
+    assert!(err.contains("lidar_tum.txt") && err.contains("line 1"), "{err}");
+    // A corrupt GT cloud for the evaluator.
+    std::fs::write(ds.join("gt/cloud.ply"), b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n").unwrap();
+    let rec = ds.join("lidar/raw/00000.ply");
+    let err = silvr_core::eval::evaluate_files(&rec, &ds, &Default::default()).unwrap_err().to_string();
+    assert!(err.contains("cloud.ply"), "{err}");
+    // A truncated image.
+    let img = ds.join("images/cam_front/00000.png");
+    let bytes = std::fs::read(&img).unwrap();
+    std::fs::write(&img, &bytes[..100]).unwrap();
+    let err = read_rgb(&img).unwrap_err().to_string();
+    assert!(err.contains("00000.png"), "{err}");
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    for f in walk(from) {
+        let dst = to.join(f.strip_prefix(from).unwrap());
+        std::fs::create_dir_all(dst.parent().unwrap()).unwrap();
+        std::fs::copy(&f, &dst).unwrap();
+    }
+}
