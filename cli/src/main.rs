@@ -67,6 +67,18 @@ enum Command {
         #[arg(long)]
         keep_unknown: bool,
     },
+    /// Measure the kernels: points/s of lidar projection (WGSL vs CPU reference) and of deskewing.
+    Bench {
+        /// Points per projection call.
+        #[arg(long, default_value_t = 200_000)]
+        points: usize,
+        /// Timed repetitions (after one warm-up).
+        #[arg(long, default_value_t = 5)]
+        reps: usize,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// The main job: generate the synthetic world, build the reconstructions, evaluate, write report.json.
     Demo {
         /// `ci` or `default`; `ci` when the only GPU adapter is a software one.
@@ -108,6 +120,7 @@ fn main() {
             keep_unknown,
         ),
         Command::Demo { preset, seed, out } => demo(preset.as_deref(), seed, &out),
+        Command::Bench { points, reps, json } => bench(points, reps, json),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
@@ -348,4 +361,71 @@ fn print_table(rows: &[(&str, &GeometryReport)]) {
             g("fscore_10cm")
         );
     }
+}
+
+fn median_rate(mut secs: Vec<f64>, n: usize) -> f64 {
+    secs.sort_by(f64::total_cmp);
+    n as f64 / secs[secs.len() / 2]
+}
+
+fn bench(points: usize, reps: usize, json: bool) -> Result<()> {
+    use silvr_core::geometry::{Se3, Trajectory};
+    let gpu = open_gpu()?;
+    let cam = check_camera();
+    let pts = project::sample_points(&cam, 3, points);
+    let input = project::ProjectionInput {
+        camera: &cam,
+        t_cam_points: Se3::IDENTITY,
+        points: &pts,
+        near: 0.1,
+    };
+    let reps = reps.max(1);
+    let time = |f: &mut dyn FnMut() -> Result<()>| -> Result<Vec<f64>> {
+        f()?;
+        let mut v = Vec::new();
+        for _ in 0..reps {
+            let t = Instant::now();
+            f()?;
+            v.push(t.elapsed().as_secs_f64());
+        }
+        Ok(v)
+    };
+    let gpu_t = time(&mut || {
+        pollster::block_on(project::project_gpu(&gpu, &input))?;
+        Ok(())
+    })?;
+    let cpu_t = time(&mut || {
+        project::project_cpu(&input)?;
+        Ok(())
+    })?;
+    // Deskew: a 10 Hz sweep's worth of per-column times against a 100 Hz trajectory.
+    let stamps: Vec<f64> = (0..=20).map(|i| i as f64 * 0.01).collect();
+    let poses = stamps
+        .iter()
+        .map(|&t| Se3::new(glam::DQuat::from_rotation_z(t), glam::DVec3::new(1.4 * t, 0.0, 0.0)))
+        .collect();
+    let traj = Trajectory::new(stamps, poses)?;
+    let times: Vec<f64> = (0..points).map(|i| 0.05 + 0.1 * (i / 64) as f64 / (points / 64).max(1) as f64).collect();
+    let times: Vec<f64> = times.into_iter().map(|t| t.min(0.15)).collect();
+    let desk_t = time(&mut || {
+        silvr_core::lidar::deskew::deskew(&pts, &times, &traj, 0.1)?;
+        Ok(())
+    })?;
+    let v = serde_json::json!({
+        "adapter": gpu.report(),
+        "points": points,
+        "projection_gpu_points_per_s": median_rate(gpu_t, points),
+        "projection_cpu_points_per_s": median_rate(cpu_t, points),
+        "deskew_cpu_points_per_s": median_rate(desk_t, points),
+        "note": "projection_gpu includes upload, three dispatches and readback; CPU is single-threaded f64",
+    });
+    if json {
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!("adapter: {}", gpu.report());
+        for k in ["projection_gpu_points_per_s", "projection_cpu_points_per_s", "deskew_cpu_points_per_s"] {
+            println!("{k:<32} {:>14.0}", v[k].as_f64().unwrap_or(f64::NAN));
+        }
+    }
+    Ok(())
 }
