@@ -402,10 +402,17 @@ fn bench(points: usize, reps: usize, json: bool) -> Result<()> {
     let stamps: Vec<f64> = (0..=20).map(|i| i as f64 * 0.01).collect();
     let poses = stamps
         .iter()
-        .map(|&t| Se3::new(glam::DQuat::from_rotation_z(t), glam::DVec3::new(1.4 * t, 0.0, 0.0)))
+        .map(|&t| {
+            Se3::new(
+                glam::DQuat::from_rotation_z(t),
+                glam::DVec3::new(1.4 * t, 0.0, 0.0),
+            )
+        })
         .collect();
     let traj = Trajectory::new(stamps, poses)?;
-    let times: Vec<f64> = (0..points).map(|i| 0.05 + 0.1 * (i / 64) as f64 / (points / 64).max(1) as f64).collect();
+    let times: Vec<f64> = (0..points)
+        .map(|i| 0.05 + 0.1 * (i / 64) as f64 / (points / 64).max(1) as f64)
+        .collect();
     let times: Vec<f64> = times.into_iter().map(|t| t.min(0.15)).collect();
     let desk_t = time(&mut || {
         silvr_core::lidar::deskew::deskew(&pts, &times, &traj, 0.1)?;
@@ -423,7 +430,11 @@ fn bench(points: usize, reps: usize, json: bool) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         println!("adapter: {}", gpu.report());
-        for k in ["projection_gpu_points_per_s", "projection_cpu_points_per_s", "deskew_cpu_points_per_s"] {
+        for k in [
+            "projection_gpu_points_per_s",
+            "projection_cpu_points_per_s",
+            "deskew_cpu_points_per_s",
+        ] {
             println!("{k:<32} {:>14.0}", v[k].as_f64().unwrap_or(f64::NAN));
         }
     }

@@ -11,9 +11,8 @@ import { after, before, describe, test } from 'node:test';
 import assert from 'node:assert/strict';
 import { createServer } from 'node:http';
 import { createRequire } from 'node:module';
-import { existsSync, mkdtempSync, rmSync } from 'node:fs';
+import { existsSync } from 'node:fs';
 import { readFile, stat } from 'node:fs/promises';
-import { tmpdir } from 'node:os';
 import { extname, join, normalize, resolve, sep } from 'node:path';
 import { fileURLToPath } from 'node:url';
 import { randomBytes } from 'node:crypto';
@@ -97,20 +96,24 @@ async function serveDist() {
   return { server, url: `http://127.0.0.1:${server.address().port}/` };
 }
 
+/** Stops the server, dropping the browser's keep-alive connections so node can exit. */
+function stopServer(server) {
+  if (!server) return Promise.resolve();
+  server.closeAllConnections();
+  return new Promise((ok) => server.close(() => ok()));
+}
+
+/** Playwright gives each launch a fresh temporary profile and removes it on close. */
 async function launch(args) {
-  const userDataDir = mkdtempSync(join(tmpdir(), 'silvr-chromium-'));
   const browser = await chromium.launch({
     executablePath: CHROMIUM,
     headless: true,
-    args: [...BASE_ARGS, `--user-data-dir=${userDataDir}`, ...args],
+    args: [...BASE_ARGS, ...args],
     timeout: STEP_TIMEOUT_MS,
   });
   return {
     browser,
-    async close() {
-      await browser.close().catch(() => {});
-      rmSync(userDataDir, { recursive: true, force: true });
-    },
+    close: () => browser.close().catch(() => {}),
   };
 }
 
@@ -162,7 +165,7 @@ describe('studio with WebGPU (SwiftShader)', { timeout: 4 * STARTUP_TIMEOUT_MS }
 
   after(async () => {
     await chrome?.close();
-    await new Promise((ok) => (server ? server.close(ok) : ok()));
+    await stopServer(server);
   });
 
   test('page loads and the worker reports a WebGPU adapter', async () => {
@@ -173,6 +176,8 @@ describe('studio with WebGPU (SwiftShader)', { timeout: 4 * STARTUP_TIMEOUT_MS }
     assert.equal(await page.title(), 'SiLVR Studio — ready');
     const name = await page.getAttribute('#adapter', 'data-name');
     assert.ok(name && name.trim().length > 0, `adapter name is empty; #adapter: ${await page.textContent('#adapter')}`);
+    // wgpu leaves the name empty on the web; the worker names it from GPUAdapterInfo (vendor, architecture).
+    assert.notEqual(name, 'unnamed adapter');
     const text = await page.textContent('#adapter');
     assert.ok(text.includes('BrowserWebGpu'), text);
     // Headless Chromium only has SwiftShader, a CPU rasteriser.
@@ -238,21 +243,26 @@ describe('studio with WebGPU (SwiftShader)', { timeout: 4 * STARTUP_TIMEOUT_MS }
 describe('studio without WebGPU', { timeout: 2 * STARTUP_TIMEOUT_MS }, () => {
   test('shows a clear error and the error state', async () => {
     const { server, url } = await serveDist();
-    // No --enable-unsafe-webgpu: headless Chromium then offers no adapter.
-    const chrome = await launch(['--disable-features=WebGPU']);
+    let chrome;
     try {
+      // No --enable-unsafe-webgpu (and WebGPU switched off): headless Chromium then offers no adapter.
+      chrome = await launch(['--disable-features=WebGPU']);
       const { page, log } = await openStudio(chrome.browser, url);
       const state = await settle(page, log);
       assert.equal(state, 'error', log.join('\n'));
       assert.equal(await page.title(), 'SiLVR Studio — error');
       const message = await page.textContent('#error');
       assert.ok(await page.isVisible('#error'));
-      assert.match(message, /WebGPU is not available/, message);
+      assert.match(message, /needs WebGPU/, message);
       assert.equal(await page.getAttribute('#adapter', 'data-error'), 'webgpu');
+      // The worker says why (navigator.gpu missing, or no adapter) and keeps wgpu's error as detail.
+      const why = await page.textContent('#adapter');
+      assert.match(why, /navigator\.gpu/, why);
+      assert.match(why, /no GPU adapter found/, why);
       assert.equal(await page.isDisabled('#rerun'), true);
     } finally {
-      await chrome.close();
-      await new Promise((ok) => server.close(ok));
+      await chrome?.close();
+      await stopServer(server);
     }
   });
 });

@@ -16,8 +16,15 @@ fn help_lists_the_commands() {
 
 #[test]
 fn gpu_info_reports_the_adapter_and_a_passing_kernel_check() {
-    let out = Command::new(build_silvr()).args(["gpu-info", "--json"]).output().unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = Command::new(build_silvr())
+        .args(["gpu-info", "--json"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert!(!v["adapter"]["name"].as_str().unwrap().is_empty());
     assert_eq!(v["projection_check"]["winner_mismatches"], 0);
@@ -35,7 +42,10 @@ fn gpu_info_without_a_vulkan_driver_is_a_clear_error() {
         .unwrap();
     assert_eq!(out.status.code(), Some(1), "exit code");
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("no GPU adapter found") && err.contains("mesa-vulkan-drivers"), "{err}");
+    assert!(
+        err.contains("no GPU adapter found") && err.contains("mesa-vulkan-drivers"),
+        "{err}"
+    );
     assert!(!err.contains("panicked"), "{err}");
 }
 
@@ -48,8 +58,13 @@ fn demo_ci_writes_a_report_with_an_accurate_lidar_map() {
         .arg(&out)
         .output()
         .unwrap();
-    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
     let lidar = &report["methods"]["lidar_only"];
     for key in [
         "accuracy_m",
@@ -61,7 +76,10 @@ fn demo_ci_writes_a_report_with_an_accurate_lidar_map() {
         "recall_10cm",
         "fscore_10cm",
     ] {
-        assert!(lidar[key].is_number(), "methods.lidar_only.{key} missing: {lidar}");
+        assert!(
+            lidar[key].is_number(),
+            "methods.lidar_only.{key} missing: {lidar}"
+        );
     }
     let acc = lidar["accuracy_m"].as_f64().unwrap();
     assert!(acc < 0.05, "lidar-only accuracy {acc} m");
@@ -83,6 +101,9 @@ fn eval_of_a_missing_file_names_it() {
         .unwrap();
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("cloud.ply") || err.contains("nope.ply"), "{err}");
+    assert!(
+        err.contains("cloud.ply") || err.contains("nope.ply"),
+        "{err}"
+    );
     assert!(!tmp.path().join("r.json").exists(), "no report on failure");
 }

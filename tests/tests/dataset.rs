@@ -66,9 +66,17 @@ fn lidar_normals_on_the_road_match_ground_truth() {
         }
     }
     errs.sort_by(f64::total_cmp);
-    assert!(errs.len() > 1000, "{} road pixels with lidar normals", errs.len());
+    assert!(
+        errs.len() > 1000,
+        "{} road pixels with lidar normals",
+        errs.len()
+    );
     let median = errs[errs.len() / 2];
-    assert!(median < 3.0, "median road normal error {median}° over {} pixels", errs.len());
+    assert!(
+        median < 3.0,
+        "median road normal error {median}° over {} pixels",
+        errs.len()
+    );
 }
 
 #[test]
@@ -121,7 +129,11 @@ fn same_seed_gives_identical_bytes_and_another_seed_does_not() {
         let rel = entry.strip_prefix(shared).unwrap();
         let x = std::fs::read(&entry).unwrap();
         let y = std::fs::read(a.join(rel)).unwrap_or_else(|e| panic!("{}: {e}", rel.display()));
-        assert!(x == y, "{} differs between two runs with the same seed", rel.display());
+        assert!(
+            x == y,
+            "{} differs between two runs with the same seed",
+            rel.display()
+        );
         compared += 1;
     }
     assert!(compared > 50, "{compared} files");
@@ -150,9 +162,19 @@ fn an_existing_output_is_refused_and_nothing_partial_is_left() {
     let out = tmp.path().join("taken");
     std::fs::create_dir(&out).unwrap();
     let err = make(&small(3), &out).unwrap_err().to_string();
-    assert!(err.contains("taken") && err.contains("already exists"), "{err}");
-    let left: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
-    assert_eq!(left.len(), 1, "only the pre-existing folder remains: {left:?}");
+    assert!(
+        err.contains("taken") && err.contains("already exists"),
+        "{err}"
+    );
+    let left: Vec<_> = std::fs::read_dir(tmp.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(
+        left.len(),
+        1,
+        "only the pre-existing folder remains: {left:?}"
+    );
 }
 
 #[test]
@@ -164,16 +186,29 @@ fn corrupt_files_give_errors_that_name_them() {
     let sweep = ds.join("lidar/deskewed/00002.ply");
     let bytes = std::fs::read(&sweep).unwrap();
     std::fs::write(&sweep, &bytes[..bytes.len() / 2]).unwrap();
-    let err = silvr_core::lidar::map::lidar_map(&ds).unwrap_err().to_string();
+    let err = silvr_core::lidar::map::lidar_map(&ds)
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("00002.ply"), "{err}");
     // A corrupt pose file.
     std::fs::write(ds.join("poses/lidar_tum.txt"), "0 1 2 3 x 0 0 1\n").unwrap();
-    let err = silvr_core::lidar::map::lidar_map(&ds).unwrap_err().to_string();
-    assert!(err.contains("lidar_tum.txt") && err.contains("line 1"), "{err}");
+    let err = silvr_core::lidar::map::lidar_map(&ds)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("lidar_tum.txt") && err.contains("line 1"),
+        "{err}"
+    );
     // A corrupt GT cloud for the evaluator.
-    std::fs::write(ds.join("gt/cloud.ply"), b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n").unwrap();
+    std::fs::write(
+        ds.join("gt/cloud.ply"),
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n",
+    )
+    .unwrap();
     let rec = ds.join("lidar/raw/00000.ply");
-    let err = silvr_core::eval::evaluate_files(&rec, &ds, &Default::default()).unwrap_err().to_string();
+    let err = silvr_core::eval::evaluate_files(&rec, &ds, &Default::default())
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("cloud.ply"), "{err}");
     // A truncated image.
     let img = ds.join("images/cam_front/00000.png");

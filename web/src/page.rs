@@ -12,7 +12,7 @@ use web_sys::{
 };
 
 use crate::protocol::{
-    describe_size, explain_error, group_digits, Adapter, Check, FromWorker, ToWorker,
+    describe_size, explain_error, group_digits, Adapter, BrowserInfo, Check, FromWorker, ToWorker,
 };
 
 const TITLE: &str = "SiLVR Studio";
@@ -97,8 +97,8 @@ fn start_worker(page: &Shared) -> Result<Worker, JsValue> {
 fn on_worker_message(page: &Shared, msg: FromWorker) {
     let doc = page.borrow().doc.clone();
     match msg {
-        FromWorker::Adapter { adapter } => {
-            show_adapter(&doc, &adapter);
+        FromWorker::Adapter { adapter, browser } => {
+            show_adapter(&doc, &adapter, browser.as_ref());
             set_state(
                 &doc,
                 "loading",
@@ -132,23 +132,32 @@ fn on_worker_message(page: &Shared, msg: FromWorker) {
                 set_status(&doc, &status);
             }
         }
-        FromWorker::Error { id, stage, message } => {
-            let text = explain_error(&stage, &message);
+        FromWorker::Error {
+            id,
+            stage,
+            message,
+            detail,
+        } => {
+            let mut text = explain_error(&stage, &message);
             let fatal = id.is_none() || stage == "webgpu" || stage == "panic";
             if stage == "webgpu" {
-                let el = by_id(&doc, "adapter");
-                if let Some(el) = &el {
-                    clear(el);
-                    el.append_child(&text_el(&doc, "p", "bad", "WebGPU unavailable"))
-                        .ok();
-                    el.append_child(&text_el(&doc, "p", "muted", &message)).ok();
+                if let Some(el) = by_id(&doc, "adapter") {
+                    clear(&el);
                     el.set_attribute("data-error", "webgpu").ok();
+                    el.append_child(&text_el(&doc, "p", "headline bad", "WebGPU unavailable"))
+                        .ok();
+                    el.append_child(&text_el(&doc, "p", "", &message)).ok();
+                    if let Some(detail) = &detail {
+                        el.append_child(&details(&doc, detail)).ok();
+                    }
                 }
                 if let Some(el) = by_id(&doc, "projection") {
                     clear(&el);
                     el.append_child(&text_el(&doc, "p", "muted", "Not run: it needs WebGPU."))
                         .ok();
                 }
+            } else if let Some(detail) = &detail {
+                text = format!("{text} ({detail})");
             }
             if fatal {
                 fail(&doc, &text);
@@ -190,7 +199,7 @@ fn request_check(page: &Shared) {
     }
 }
 
-fn show_adapter(doc: &web_sys::Document, a: &Adapter) {
+fn show_adapter(doc: &web_sys::Document, a: &Adapter, browser: Option<&BrowserInfo>) {
     let Some(el) = by_id(doc, "adapter") else {
         return;
     };
@@ -214,6 +223,9 @@ fn show_adapter(doc: &web_sys::Document, a: &Adapter) {
         ("Backend", a.backend.clone()),
         ("Device type", a.device_type.clone()),
     ];
+    if let Some(summary) = browser.and_then(BrowserInfo::summary) {
+        rows.push(("Vendor", summary));
+    }
     let driver = format!("{} {}", a.driver, a.driver_info).trim().to_string();
     if !driver.is_empty() {
         rows.push(("Driver", driver));
@@ -421,6 +433,16 @@ fn text_el(doc: &web_sys::Document, tag: &str, class: &str, text: &str) -> Eleme
     }
     e.set_text_content(Some(text));
     e
+}
+
+/// A collapsed `<details>` block with technical text.
+fn details(doc: &web_sys::Document, text: &str) -> Element {
+    let d = doc.create_element("details").unwrap();
+    d.append_child(&text_el(doc, "summary", "muted small", "Details"))
+        .ok();
+    d.append_child(&text_el(doc, "p", "muted small detail", text))
+        .ok();
+    d
 }
 
 fn table(doc: &web_sys::Document, rows: &[(&str, String)]) -> Element {

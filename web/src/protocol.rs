@@ -20,6 +20,8 @@ pub enum ToWorker {
 pub enum FromWorker {
     Adapter {
         adapter: Adapter,
+        #[serde(default)]
+        browser: Option<BrowserInfo>,
     },
     Projection {
         id: Option<u32>,
@@ -33,6 +35,8 @@ pub enum FromWorker {
         id: Option<u32>,
         stage: String,
         message: String,
+        #[serde(default)]
+        detail: Option<String>,
     },
 }
 
@@ -53,6 +57,27 @@ pub struct Adapter {
     pub max_compute_invocations_per_workgroup: u32,
 }
 
+/// `GPUAdapterInfo` as the worker read it.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(default)]
+pub struct BrowserInfo {
+    pub vendor: String,
+    pub architecture: String,
+    pub device: String,
+}
+
+impl BrowserInfo {
+    /// `google / swiftshader`, or `None` when the browser says nothing.
+    pub fn summary(&self) -> Option<String> {
+        let parts: Vec<&str> = [&self.vendor, &self.architecture, &self.device]
+            .into_iter()
+            .map(|s| s.trim())
+            .filter(|s| !s.is_empty())
+            .collect();
+        (!parts.is_empty()).then(|| parts.join(" / "))
+    }
+}
+
 /// `silvr_core::lidar::project::SelfCheck`.
 #[derive(Clone, Debug, Deserialize)]
 pub struct Check {
@@ -69,7 +94,7 @@ pub fn group_digits(n: u64) -> String {
     let s = n.to_string();
     let mut out = String::with_capacity(s.len() + s.len() / 3);
     for (i, c) in s.chars().enumerate() {
-        if i > 0 && (s.len() - i) % 3 == 0 {
+        if i > 0 && (s.len() - i).is_multiple_of(3) {
             out.push(',');
         }
         out.push(c);
@@ -97,20 +122,29 @@ pub fn describe_size(bytes: u64) -> String {
     format!("{exact} ({v:.1} {})", UNITS[unit])
 }
 
-/// What a worker error means for someone looking at the page.
+/// What a worker error means for someone looking at the page (one or two sentences; the worker's
+/// technical detail is shown separately).
 pub fn explain_error(stage: &str, message: &str) -> String {
     match stage {
-        "webgpu" => format!(
-            "WebGPU is not available, so SiLVR Studio cannot run its GPU engine here. Use a recent \
-             Chrome or Edge (or Chromium with --enable-unsafe-webgpu), or Firefox/Safari with WebGPU \
-             enabled. Details: {message}"
-        ),
-        "panic" => format!("The engine worker crashed; reload the page. Details: {message}"),
-        _ => message.to_string(),
+        "webgpu" => "SiLVR Studio needs WebGPU, and this browser offers no usable adapter. Use a recent \
+                     Chrome or Edge (or Chromium with --enable-unsafe-webgpu), or Firefox or Safari with \
+                     WebGPU enabled."
+            .to_string(),
+        "panic" => format!("The engine worker crashed; reload the page. ({message})"),
+        _ => capitalize(message),
     }
 }
 
-#[cfg(test)]
+/// `"the kernel"` → `"The kernel"`.
+pub fn capitalize(s: &str) -> String {
+    let mut c = s.chars();
+    match c.next() {
+        Some(first) => first.to_uppercase().chain(c).collect(),
+        None => String::new(),
+    }
+}
+
+#[cfg(all(test, not(target_arch = "wasm32")))]
 mod tests {
     use super::*;
 
@@ -140,6 +174,15 @@ mod tests {
     }
 
     #[test]
+    fn errors_read_well() {
+        assert!(explain_error("webgpu", "x").contains("needs WebGPU"));
+        assert_eq!(
+            explain_error("projection", "the kernel failed"),
+            "The kernel failed"
+        );
+    }
+
+    #[test]
     fn worker_messages_parse() {
         let m: FromWorker = serde_json::from_str(
             r#"{"type":"adapter","adapter":{"name":"SwiftShader","backend":"BrowserWebGpu",
@@ -148,7 +191,7 @@ mod tests {
                 "max_compute_workgroup_storage_size":32768,"max_compute_invocations_per_workgroup":256}}"#,
         )
         .unwrap();
-        assert!(matches!(m, FromWorker::Adapter { adapter } if adapter.software));
+        assert!(matches!(m, FromWorker::Adapter { adapter, browser: None } if adapter.software));
         let m: FromWorker = serde_json::from_str(
             r#"{"type":"projection","id":null,"seed":7,"n":4000,"elapsed_ms":12,"passed":true,
                 "check":{"points":4000,"pixels":97200,"filled_pixels":3000,"winner_mismatches":0,

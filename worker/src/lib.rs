@@ -7,7 +7,7 @@
 //! |---|---|
 //! | worker → page | `{type: "adapter", adapter: AdapterReport}` once WebGPU gave a device |
 //! | worker → page | `{type: "projection", id, seed, n, elapsed_ms, passed, check: SelfCheck}` after each kernel self-check (`id` is `null` for the one at startup) |
-//! | worker → page | `{type: "error", id, stage, message}`: `stage` is `"webgpu"` (no usable adapter), `"projection"`, `"message"` (a message the worker does not understand) or `"panic"` |
+//! | worker → page | `{type: "error", id, stage, message, detail}`: `stage` is `"webgpu"` (no usable adapter), `"projection"`, `"message"` (a message the worker does not understand) or `"panic"` |
 //! | page → worker | `{type: "run-check", id?, n?, seed?}`: run the projection self-check again |
 //!
 //! Natively the crate builds (the message types and [`run_check`] are plain Rust) but the `worker` binary
@@ -63,12 +63,47 @@ pub enum Stage {
     Panic,
 }
 
+/// The browser's own description of the adapter (`GPUAdapterInfo`). wgpu takes the adapter name from
+/// `description`, which browsers usually leave empty for privacy; vendor and architecture are still set.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct BrowserAdapterInfo {
+    pub vendor: String,
+    pub architecture: String,
+    pub device: String,
+    pub description: String,
+}
+
+impl BrowserAdapterInfo {
+    /// A readable name: the description, else vendor, architecture and device (e.g. `google swiftshader`).
+    pub fn display_name(&self) -> Option<String> {
+        if !self.description.trim().is_empty() {
+            return Some(self.description.trim().to_string());
+        }
+        let parts: Vec<&str> = [&self.vendor, &self.architecture, &self.device]
+            .into_iter()
+            .map(|s| s.trim())
+            .filter(|s| !s.is_empty())
+            .collect();
+        (!parts.is_empty()).then(|| parts.join(" "))
+    }
+}
+
+/// Gives an adapter that wgpu could not name (`"unnamed adapter"`) the browser's name for it.
+pub fn name_adapter(report: &mut AdapterReport, info: &BrowserAdapterInfo) {
+    let unnamed = report.name.trim().is_empty() || report.name == "unnamed adapter";
+    if let (true, Some(name)) = (unnamed, info.display_name()) {
+        report.name = name;
+    }
+}
+
 /// Messages from the worker to the page.
 #[derive(Debug, Serialize)]
 #[serde(tag = "type", rename_all = "kebab-case")]
 pub enum ToPage {
     Adapter {
         adapter: AdapterReport,
+        /// `GPUAdapterInfo` as the browser reports it, where it could be read.
+        browser: Option<BrowserAdapterInfo>,
     },
     Projection {
         id: Option<u32>,
@@ -81,7 +116,10 @@ pub enum ToPage {
     Error {
         id: Option<u32>,
         stage: Stage,
+        /// One sentence for people.
         message: String,
+        /// The underlying error, for the curious and for bug reports.
+        detail: Option<String>,
     },
 }
 
@@ -110,6 +148,7 @@ pub async fn run_check(gpu: &Gpu, id: Option<u32>, n: usize, seed: u64) -> ToPag
             message: format!(
                 "a self-check takes at most {MAX_CHECK_POINTS} points, {n} were asked for"
             ),
+            detail: None,
         };
     }
     let start = now_ms();
@@ -125,7 +164,8 @@ pub async fn run_check(gpu: &Gpu, id: Option<u32>, n: usize, seed: u64) -> ToPag
         Err(e) => ToPage::Error {
             id,
             stage: Stage::Projection,
-            message: format!("the projection kernel could not run: {e}"),
+            message: "the projection kernel could not run".into(),
+            detail: Some(e.to_string()),
         },
     }
 }
@@ -159,7 +199,7 @@ fn now_ms() -> f64 {
         .unwrap_or(0.0)
 }
 
-#[cfg(test)]
+#[cfg(all(test, not(target_arch = "wasm32")))]
 mod tests {
     use super::*;
 
@@ -193,11 +233,31 @@ mod tests {
     }
 
     #[test]
+    fn unnamed_adapters_get_the_browser_name() {
+        let info = BrowserAdapterInfo {
+            vendor: "google".into(),
+            architecture: "swiftshader".into(),
+            ..Default::default()
+        };
+        assert_eq!(info.display_name().as_deref(), Some("google swiftshader"));
+        assert_eq!(BrowserAdapterInfo::default().display_name(), None);
+        let described = BrowserAdapterInfo {
+            description: "NVIDIA GeForce RTX 4090".into(),
+            ..info.clone()
+        };
+        assert_eq!(
+            described.display_name().as_deref(),
+            Some("NVIDIA GeForce RTX 4090")
+        );
+    }
+
+    #[test]
     fn worker_messages_are_tagged_by_type() {
         let msg = ToPage::Error {
             id: Some(3),
             stage: Stage::Projection,
             message: "x".into(),
+            detail: None,
         };
         let v = serde_json::to_value(&msg).unwrap();
         assert_eq!(v["type"], "error");

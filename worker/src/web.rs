@@ -10,7 +10,10 @@ use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::spawn_local;
 use web_sys::{DedicatedWorkerGlobalScope, MessageEvent};
 
-use crate::{handle, run_check, FromPage, Stage, ToPage, STARTUP_POINTS, STARTUP_SEED};
+use crate::{
+    handle, name_adapter, run_check, BrowserAdapterInfo, FromPage, Stage, ToPage, STARTUP_POINTS,
+    STARTUP_SEED,
+};
 
 /// The device, once startup has settled. Messages that arrive before are queued.
 enum GpuState {
@@ -42,26 +45,37 @@ async fn startup(state: Shared) {
     let gpu = match Gpu::new(GpuOptions::default()).await {
         Ok(gpu) => gpu,
         Err(e) => {
-            let message = format!("WebGPU is not available in this browser's workers: {e}");
+            let message = match browser_adapter_info().await {
+                Err(missing) => missing,
+                Ok(None) => "navigator.gpu offers no adapter: WebGPU is switched off or the GPU is blocklisted \
+                             (Chromium without a GPU needs --enable-unsafe-webgpu)"
+                    .to_string(),
+                Ok(Some(_)) => "the browser's WebGPU adapter cannot run SiLVR's kernels".to_string(),
+            };
+            let detail = e.to_string();
             post(&ToPage::Error {
                 id: None,
                 stage: Stage::Webgpu,
                 message: message.clone(),
+                detail: Some(detail.clone()),
             });
-            let old =
-                std::mem::replace(&mut *state.borrow_mut(), GpuState::Failed(message.clone()));
+            let why = format!("WebGPU is not available: {message} ({detail})");
+            let old = std::mem::replace(&mut *state.borrow_mut(), GpuState::Failed(why.clone()));
             if let GpuState::Starting(queued) = old {
                 for msg in queued {
-                    post(&refuse(&msg, &message));
+                    post(&refuse(&msg, &why));
                 }
             }
             return;
         }
     };
-    log::info!("silvr worker: {}", gpu.report());
-    post(&ToPage::Adapter {
-        adapter: gpu.report().clone(),
-    });
+    let mut adapter = gpu.report().clone();
+    let browser = browser_adapter_info().await.ok().flatten();
+    if let Some(info) = &browser {
+        name_adapter(&mut adapter, info);
+    }
+    log::info!("silvr worker: {adapter}");
+    post(&ToPage::Adapter { adapter, browser });
     post(&run_check(&gpu, None, STARTUP_POINTS, STARTUP_SEED).await);
     let old = std::mem::replace(&mut *state.borrow_mut(), GpuState::Ready(gpu.clone()));
     if let GpuState::Starting(queued) = old {
@@ -86,7 +100,8 @@ fn receive(state: &Shared, data: JsValue) {
                     .and_then(|v| v.as_f64())
                     .map(|v| v as u32),
                 stage: Stage::Message,
-                message: format!("the worker does not understand the message {shown}: {e}"),
+                message: format!("the worker does not understand the message {shown}"),
+                detail: Some(e.to_string()),
             });
             return;
         }
@@ -108,7 +123,52 @@ fn refuse(msg: &FromPage, why: &str) -> ToPage {
         id: *id,
         stage: Stage::Webgpu,
         message: why.to_string(),
+        detail: None,
     }
+}
+
+/// Asks `navigator.gpu` directly for the adapter's `GPUAdapterInfo` (wgpu does not pass vendor and
+/// architecture on). `Err` says why there is no `navigator.gpu`; `Ok(None)`: it offers no adapter.
+async fn browser_adapter_info() -> Result<Option<BrowserAdapterInfo>, String> {
+    let get = |obj: &JsValue, key: &str| {
+        js_sys::Reflect::get(obj, &JsValue::from_str(key)).unwrap_or(JsValue::UNDEFINED)
+    };
+    let gpu = get(&get(&js_sys::global(), "navigator"), "gpu");
+    if gpu.is_undefined() || gpu.is_null() {
+        return Err(
+            "navigator.gpu is missing: this browser has WebGPU switched off or does not support it"
+                .into(),
+        );
+    }
+    let request = get(&gpu, "requestAdapter")
+        .dyn_into::<js_sys::Function>()
+        .map_err(|_| "navigator.gpu.requestAdapter is not a function".to_string())?;
+    let options = js_sys::Object::new();
+    js_sys::Reflect::set(
+        &options,
+        &"powerPreference".into(),
+        &"high-performance".into(),
+    )
+    .ok();
+    let promise = request
+        .call1(&gpu, &options)
+        .map_err(|e| format!("requestAdapter threw {e:?}"))?
+        .dyn_into::<js_sys::Promise>()
+        .map_err(|_| "requestAdapter did not return a promise".to_string())?;
+    let adapter = wasm_bindgen_futures::JsFuture::from(promise)
+        .await
+        .map_err(|e| format!("requestAdapter failed: {e:?}"))?;
+    if adapter.is_null() || adapter.is_undefined() {
+        return Ok(None);
+    }
+    let info = get(&adapter, "info");
+    let text = |key: &str| get(&info, key).as_string().unwrap_or_default();
+    Ok(Some(BrowserAdapterInfo {
+        vendor: text("vendor"),
+        architecture: text("architecture"),
+        device: text("device"),
+        description: text("description"),
+    }))
 }
 
 fn scope() -> DedicatedWorkerGlobalScope {
@@ -141,6 +201,7 @@ fn install_panic_hook() {
             id: None,
             stage: Stage::Panic,
             message,
+            detail: None,
         });
     }));
 }
