@@ -15,6 +15,9 @@ echo "== native tests (cargo test --workspace)"
 cargo build -q -p silvr
 cargo test --workspace
 
+echo "== evaluator cross-check against SciPy cKDTree (and scikit-image SSIM)"
+python3 scripts/crosscheck_eval.py
+
 echo "== engine builds for wasm32 with no native-only dependency"
 cargo build -q -p silvr-core --target wasm32-unknown-unknown
 

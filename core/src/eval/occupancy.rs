@@ -177,6 +177,17 @@ impl OccupancyGrid {
         *l = (*l + delta).clamp(self.min, self.max);
     }
 
+    /// Marks the voxel holding each point as surely occupied (log-odds at the upper clamp). A ground-truth
+    /// grid does this for every GT point, so the GT never lies in space the grid calls unknown or free —
+    /// as in Spires, where the grid is built from the very scans that make the GT cloud.
+    pub fn mark_occupied(&mut self, points: &[DVec3]) {
+        let max = self.max;
+        for p in points.iter().filter(|p| p.is_finite()) {
+            let k = voxel_key(*p, self.inv_voxel);
+            self.cells.insert(k, max);
+        }
+    }
+
     /// Casts one ray: voxels from the origin's up to (not including) the endpoint's are updated as free,
     /// the endpoint voxel as occupied when `hit` (a return), left alone otherwise (a max-range ray, as in
     /// OctoMap). Returns false, changing nothing, for non-finite input or rays over [`MAX_RAY_STEPS`].

@@ -384,6 +384,7 @@ pub async fn generate(
         .any(|d| seen.contains(&[k[0] + d[0], k[1] + d[1], k[2] + d[2]]))
     });
     let gt_points = gt.len();
+    observed.mark_occupied(&gt.positions);
     o.put("gt/cloud.ply".into(), &ply(&gt, "gt/cloud.ply")?)?;
     o.put("gt/mesh.ply".into(), &mesh_ply(&world))?;
     let obs = observed
