@@ -17,6 +17,7 @@
 pub mod camera;
 pub mod dataset;
 pub mod eval;
+pub mod field;
 pub mod geometry;
 pub mod gpu;
 pub mod lidar;

@@ -183,8 +183,9 @@ fn folded_dispatch_reaches_every_point() {
         height: 8,
         fx: 8.0,
         fy: 8.0,
-        cx: 3.5,
-        cy: 3.5,
+        // Pixel centres are integers (OpenCV): the optical axis lands on the centre of pixel (3, 3).
+        cx: 3.0,
+        cy: 3.0,
         distortion: Distortion::None,
     };
     let n = 65_535 * 64 + 1000;

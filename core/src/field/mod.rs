@@ -1,0 +1,7 @@
+//! The radiance field: the trainable encodings and networks that map a (contracted) position and a view
+//! direction to density and colour. Every GPU kernel here has a CPU reference next to it, written to the
+//! same arithmetic order so the two can be compared to f32 rounding.
+//!
+//! - [`hashgrid`]: the multi-resolution hash-grid encoding (nerfacto's base and proposal fields).
+
+pub mod hashgrid;
