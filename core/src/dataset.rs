@@ -80,8 +80,19 @@ impl DatasetWriter {
             .map(|n| n.to_string_lossy().to_string())
             .unwrap_or_else(|| "dataset".into());
         let staging = target.with_file_name(format!(".{name}.partial-{}", std::process::id()));
-        if staging.exists() {
-            fs::remove_dir_all(&staging).map_err(io_err(&staging))?;
+        // Staging folders of earlier runs that were killed (no chance to clean up) go first.
+        let prefix = format!(".{name}.partial-");
+        let parent = match target.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p,
+            _ => Path::new("."),
+        };
+        if parent.is_dir() {
+            for entry in fs::read_dir(parent).map_err(io_err(parent))?.flatten() {
+                if entry.file_name().to_string_lossy().starts_with(&prefix) {
+                    let p = entry.path();
+                    fs::remove_dir_all(&p).map_err(io_err(&p))?;
+                }
+            }
         }
         fs::create_dir_all(&staging).map_err(io_err(&staging))?;
         Ok(Self {

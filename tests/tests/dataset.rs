@@ -275,3 +275,16 @@ fn ground_truth_scored_against_itself_is_perfect_and_noise_lowers_it() {
         last = f;
     }
 }
+
+#[test]
+fn a_killed_run_leaves_no_trace_for_the_next() {
+    let tmp = tempfile::tempdir().unwrap();
+    // What a killed generator leaves behind: a hidden staging folder.
+    let stale = tmp.path().join(".ds.partial-999999");
+    std::fs::create_dir_all(stale.join("images")).unwrap();
+    let mut p = small(9);
+    p.keyframes = 1;
+    let out = make(&p, &tmp.path().join("ds")).unwrap();
+    assert!(out.join("manifest.json").is_file());
+    assert!(!stale.exists(), "stale staging folder removed");
+}
