@@ -22,6 +22,7 @@ pub mod geometry;
 pub mod gpu;
 pub mod lidar;
 pub mod pointcloud;
+pub mod render;
 pub mod rig;
 pub mod shaders;
 pub mod synthetic;

@@ -6,3 +6,9 @@ pub const PROJECT_ZBUFFER: &str = include_str!("../../shaders/project_zbuffer.wg
 
 /// Multi-resolution hash-grid encoding, forward and backward (`field::hashgrid`).
 pub const HASHGRID: &str = include_str!("../../shaders/hashgrid.wgsl");
+
+/// Per-ray volume rendering and the SiLVR ray losses, forward and backward (`render`).
+pub const RENDER: &str = include_str!("../../shaders/render.wgsl");
+
+/// Small fully-connected MLP (nerfacto's density and colour heads), forward and backward (`field::mlp`).
+pub const MLP: &str = include_str!("../../shaders/mlp.wgsl");

@@ -3,5 +3,7 @@
 //! same arithmetic order so the two can be compared to f32 rounding.
 //!
 //! - [`hashgrid`]: the multi-resolution hash-grid encoding (nerfacto's base and proposal fields).
+//! - [`mlp`]: small fully-connected networks, forward and backward (nerfacto's density and colour heads).
 
 pub mod hashgrid;
+pub mod mlp;

@@ -1,0 +1,865 @@
+//! Small fully-connected networks: the building block of nerfacto's density head (32 → 64 → 16) and colour
+//! head (63 → 64 → 64 → 3, sigmoid), forward and backward, on the GPU (`shaders/mlp.wgsl`) and on the CPU
+//! (the reference, same f32 sums in the same order up to the GPU's fused multiply-adds).
+//!
+//! Layout rules, shared by both:
+//! - linear layer l maps `fan_in` → `fan_out`: input → hidden, hidden → hidden (`hidden_layers − 1` times),
+//!   hidden → output; with `hidden_layers = 0` a single input → output layer. Every width is 1..=64
+//!   ([`MAX_WIDTH`]); no padding is visible outside the kernels (they pad rows to whole vec4s in workgroup
+//!   memory and registers only), so any width, e.g. 63 or 7, is stored densely;
+//! - parameters: one flat f32 vector, layer after layer, each its weights **row-major `[fan_out][fan_in]`**
+//!   (PyTorch's `nn.Linear.weight`) followed by its `fan_out` biases ([`LayerInfo`] has the offsets);
+//! - rows: input `[n][input]`, output `[n][output]`, dL/doutput and dL/dinput likewise, all dense;
+//! - ReLU after every hidden layer; the output activation is None or Sigmoid (nerfacto's trunc_exp on the
+//!   density logit is left to the caller: it touches one output);
+//! - **saved** `[n][saved_per_row]`: the post-ReLU activations of every hidden layer, then the outputs again
+//!   when the output activation is Sigmoid (y(1 − y) is its derivative). The forward passes activations
+//!   from layer to layer through it (so inference needs it too); the backward reads its layer inputs and
+//!   ReLU masks (`a > 0`) from it;
+//! - **scratch** (backward only), [`MlpConfig::scratch_words`]: every layer's pre-activation gradient per row,
+//!   then one partial parameter gradient per chunk of [`CHUNK_ROWS`] rows.
+//!
+//! Initialisation as tiny-cuda-nn: Xavier-uniform weights U(±√(6 / (fan_in + fan_out))) and zero biases (tcnn
+//! has no biases; zero ones give the same function at step 0), reproducibly from a seed.
+//!
+//! Kernels (lavapipe-measured choices; see `shaders/mlp.wgsl`): one dispatch per layer for the forward and
+//! for the backward to the pre-activation gradients and dL/dinput, one thread per row, the layer's weights
+//! staged in workgroup memory so every lane reads the same address (a broadcast on CPU drivers such as
+//! lavapipe, where per-lane gathers are slow and a barrier inside a per-layer loop cost ~30%). Parameter
+//! gradients are reduced over the batch without float atomics: one workgroup per (chunk of rows, layer,
+//! block of 16 input columns) sums δ_j·a_k over its chunk into a partial, then one thread per parameter
+//! adds the partials in chunk order (under 1% of the backward on lavapipe), so GPU gradients are
+//! deterministic run to run. [`forward_gpu`] and [`backward_gpu`] take host slices; the `record_*`
+//! functions record into the caller's encoder over the caller's buffers, for the trainer.
+
+use bytemuck::{Pod, Zeroable};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::gpu::{wgpu, Gpu, GpuError, Kernel};
+use crate::shaders;
+
+/// Widest layer (input, hidden or output) the kernels take: one 64 × 64 f32 weight matrix is exactly the
+/// 16 KiB of workgroup memory the portable baseline grants.
+pub const MAX_WIDTH: usize = 64;
+/// Most hidden layers (the WGSL uniform holds a fixed table of layers).
+pub const MAX_HIDDEN_LAYERS: usize = 8;
+/// Rows per partial parameter gradient in the backward: the batch is cut into chunks of this many rows,
+/// each summed by its own workgroups, then the partials are added in order.
+pub const CHUNK_ROWS: usize = 256;
+
+const WORKGROUP: u32 = 64;
+/// Input columns per parameter-gradient workgroup (the bias counts as one more column).
+const BLOCK: usize = 16;
+const MAX_LAYERS: usize = MAX_HIDDEN_LAYERS + 1;
+
+const KERNEL: Kernel = Kernel {
+    name: "mlp",
+    source: shaders::MLP,
+    workgroup_size: WORKGROUP,
+};
+
+/// Element-wise activation after a layer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Activation {
+    None,
+    Relu,
+    Sigmoid,
+}
+
+/// The shape of a network. Hidden layers use ReLU (the only hidden activation supported); the output
+/// activation is None or Sigmoid.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MlpConfig {
+    /// Input width, 1..=64.
+    pub input: usize,
+    /// Width of every hidden layer, 1..=64 (unused, but still validated, with no hidden layers).
+    pub hidden: usize,
+    /// Hidden layers, 0..=8 (nerfstudio's `num_layers` is this + 1).
+    pub hidden_layers: usize,
+    /// Output width, 1..=64.
+    pub output: usize,
+    pub hidden_activation: Activation,
+    pub output_activation: Activation,
+}
+
+/// Where one linear layer lives in the parameter vector, in a saved row and in a scratch row.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LayerInfo {
+    pub fan_in: usize,
+    pub fan_out: usize,
+    /// First weight; W[j][k] is at `weights + j·fan_in + k`.
+    pub weights: usize,
+    /// First bias; b[j] is at `bias + j`.
+    pub bias: usize,
+    /// Offset of this layer's output in a saved row (hidden layers, and the output layer under Sigmoid).
+    pub saved: usize,
+    /// Offset of this layer's pre-activation gradient in a scratch row.
+    pub delta: usize,
+}
+
+impl MlpConfig {
+    /// nerfacto's density head: 16 levels × 2 hash features → 64 (ReLU) → 1 density logit + 15 geo features.
+    pub fn nerfacto_density() -> Self {
+        Self {
+            input: 32,
+            hidden: 64,
+            hidden_layers: 1,
+            output: 16,
+            hidden_activation: Activation::Relu,
+            output_activation: Activation::None,
+        }
+    }
+
+    /// nerfacto's colour head: 16 SH coefficients ⊕ 15 geo features ⊕ 32 appearance → 64 → 64 → RGB (sigmoid).
+    pub fn nerfacto_colour() -> Self {
+        Self {
+            input: 63,
+            hidden: 64,
+            hidden_layers: 2,
+            output: 3,
+            hidden_activation: Activation::Relu,
+            output_activation: Activation::Sigmoid,
+        }
+    }
+
+    /// Linear layers: hidden layers + 1.
+    pub fn n_layers(&self) -> usize {
+        self.hidden_layers + 1
+    }
+
+    /// The layers in order, with their offsets.
+    pub fn layers(&self) -> Vec<LayerInfo> {
+        let mut out = Vec::with_capacity(self.n_layers());
+        let (mut p, mut delta) = (0, 0);
+        for l in 0..self.n_layers() {
+            let fan_in = if l == 0 { self.input } else { self.hidden };
+            let fan_out = if l == self.hidden_layers {
+                self.output
+            } else {
+                self.hidden
+            };
+            out.push(LayerInfo {
+                fan_in,
+                fan_out,
+                weights: p,
+                bias: p + fan_in * fan_out,
+                saved: l * self.hidden,
+                delta,
+            });
+            p += (fan_in + 1) * fan_out;
+            delta += fan_out;
+        }
+        out
+    }
+
+    /// Parameter count (f32 words): Σ (fan_in + 1)·fan_out.
+    pub fn n_params(&self) -> usize {
+        self.layers()
+            .iter()
+            .map(|l| (l.fan_in + 1) * l.fan_out)
+            .sum()
+    }
+
+    /// Words per row of the saved activations: every hidden layer's, plus the outputs under Sigmoid.
+    pub fn saved_per_row(&self) -> usize {
+        let sig = self.output_activation == Activation::Sigmoid;
+        self.hidden_layers * self.hidden + if sig { self.output } else { 0 }
+    }
+
+    /// Words per row of pre-activation gradients in the scratch: every layer's outputs.
+    pub fn delta_per_row(&self) -> usize {
+        self.hidden_layers * self.hidden + self.output
+    }
+
+    /// Chunks of [`CHUNK_ROWS`] rows in a batch of `n`: one partial parameter gradient each.
+    pub fn chunks(n: usize) -> usize {
+        n.div_ceil(CHUNK_ROWS)
+    }
+
+    /// Scratch words the backward needs for `n` rows: deltas, then per-chunk partial gradients.
+    pub fn scratch_words(&self, n: usize) -> usize {
+        n * self.delta_per_row() + Self::chunks(n) * self.n_params()
+    }
+
+    /// Xavier-uniform weights U(±√(6/(fan_in + fan_out))) as tcnn, zero biases, reproducibly from `seed`.
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed);
+        let mut params = vec![0.0f32; self.n_params()];
+        for l in self.layers() {
+            let a = (6.0 / (l.fan_in + l.fan_out) as f64).sqrt() as f32;
+            for w in &mut params[l.weights..l.bias] {
+                *w = rng.random_range(-a..a);
+            }
+        }
+        params
+    }
+
+    /// Widths and activations the kernels support ([`GpuError::InvalidInput`] naming the field otherwise).
+    pub fn validate(&self) -> Result<(), GpuError> {
+        let bad = |what: String| Err(GpuError::InvalidInput(format!("MLP: {what}")));
+        for (name, v) in [
+            ("input", self.input),
+            ("hidden", self.hidden),
+            ("output", self.output),
+        ] {
+            if v == 0 || v > MAX_WIDTH {
+                return bad(format!("{name} width must be 1..={MAX_WIDTH}, got {v}"));
+            }
+        }
+        if self.hidden_layers > MAX_HIDDEN_LAYERS {
+            return bad(format!(
+                "hidden_layers must be 0..={MAX_HIDDEN_LAYERS}, got {}",
+                self.hidden_layers
+            ));
+        }
+        if self.hidden_activation != Activation::Relu {
+            return bad(format!(
+                "hidden activation must be Relu, got {:?}",
+                self.hidden_activation
+            ));
+        }
+        if self.output_activation == Activation::Relu {
+            return bad("output activation must be None or Sigmoid, got Relu".into());
+        }
+        Ok(())
+    }
+
+    fn check_len(&self, what: &str, len: usize, want: usize) -> Result<(), GpuError> {
+        if len != want {
+            return Err(GpuError::InvalidInput(format!(
+                "MLP: {what} must hold {want} values, got {len}"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Rows in `input` (validates the config and the lengths of params and input).
+    fn rows(&self, params: &[f32], input: &[f32]) -> Result<usize, GpuError> {
+        self.validate()?;
+        self.check_len("parameters", params.len(), self.n_params())?;
+        if !input.len().is_multiple_of(self.input) {
+            return Err(GpuError::InvalidInput(format!(
+                "MLP: input length {} is not a multiple of the input width {}",
+                input.len(),
+                self.input
+            )));
+        }
+        Ok(input.len() / self.input)
+    }
+}
+
+/// The forward's results: outputs `[n][output]` and the activations the backward needs
+/// `[n][saved_per_row]`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MlpForward {
+    pub output: Vec<f32>,
+    pub saved: Vec<f32>,
+}
+
+/// The backward's results.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MlpGradients {
+    /// dL/dparams, laid out like the parameters.
+    pub params: Vec<f32>,
+    /// dL/dinput `[n][input]`, if requested (to chain into the encoding that produced the input).
+    pub input: Option<Vec<f32>>,
+}
+
+/// Σ_q (x[4q]·w[4q] + … + x[4q+3]·w[4q+3]) after `acc`: the kernels' vec4 `dot` grouping.
+fn dot_quads(mut acc: f32, x: &[f32], w: impl Fn(usize) -> f32) -> f32 {
+    for (q, xs) in x.chunks(4).enumerate() {
+        let mut s = 0.0f32;
+        for (c, &v) in xs.iter().enumerate() {
+            s += v * w(4 * q + c);
+        }
+        acc += s;
+    }
+    acc
+}
+
+fn sigmoid(z: f32) -> f32 {
+    1.0 / (1.0 + (-z).exp())
+}
+
+/// One row through the network: the output and the saved activations. Stack buffers: tiny layers would
+/// otherwise spend their time in the allocator.
+fn forward_row(
+    cfg: &MlpConfig,
+    layers: &[LayerInfo],
+    params: &[f32],
+    x: &[f32],
+    out: &mut [f32],
+    saved: &mut [f32],
+) {
+    let mut a = [0.0f32; MAX_WIDTH];
+    let mut z = [0.0f32; MAX_WIDTH];
+    a[..x.len()].copy_from_slice(x);
+    for (l, ly) in layers.iter().enumerate() {
+        let last = l + 1 == layers.len();
+        for (j, zj) in z[..ly.fan_out].iter_mut().enumerate() {
+            let w = &params[ly.weights + j * ly.fan_in..][..ly.fan_in];
+            let v = dot_quads(params[ly.bias + j], &a[..ly.fan_in], |k| w[k]);
+            *zj = if !last {
+                v.max(0.0)
+            } else if cfg.output_activation == Activation::Sigmoid {
+                sigmoid(v)
+            } else {
+                v
+            };
+        }
+        let z = &z[..ly.fan_out];
+        if !last || cfg.output_activation == Activation::Sigmoid {
+            saved[ly.saved..ly.saved + ly.fan_out].copy_from_slice(z);
+        }
+        if last {
+            out.copy_from_slice(z);
+        }
+        a[..ly.fan_out].copy_from_slice(z);
+    }
+}
+
+/// CPU reference forward: `input` holds n rows of `config.input` values.
+pub fn forward_cpu(
+    config: &MlpConfig,
+    params: &[f32],
+    input: &[f32],
+) -> Result<MlpForward, GpuError> {
+    let n = config.rows(params, input)?;
+    let layers = config.layers();
+    let ss = config.saved_per_row();
+    let mut output = vec![0.0f32; n * config.output];
+    let mut saved = vec![0.0f32; n * ss];
+    let rows = output
+        .par_chunks_mut(config.output)
+        .zip(input.par_chunks(config.input));
+    if ss == 0 {
+        rows.with_min_len(64)
+            .for_each(|(out, x)| forward_row(config, &layers, params, x, out, &mut []));
+    } else {
+        rows.zip(saved.par_chunks_mut(ss))
+            .with_min_len(64)
+            .for_each(|((out, x), s)| forward_row(config, &layers, params, x, out, s));
+    }
+    Ok(MlpForward { output, saved })
+}
+
+/// One row's backward: its pre-activation gradients (all layers, a scratch row) and, if `dx` is not
+/// empty, dL/dinput.
+fn delta_row(
+    cfg: &MlpConfig,
+    layers: &[LayerInfo],
+    params: &[f32],
+    saved: &[f32],
+    dy: &[f32],
+    deltas: &mut [f32],
+    dx: &mut [f32],
+) {
+    let lo = layers[layers.len() - 1];
+    let mut g = [0.0f32; MAX_WIDTH];
+    let mut h = [0.0f32; MAX_WIDTH];
+    for (j, (gj, &v)) in g.iter_mut().zip(dy).enumerate() {
+        *gj = if cfg.output_activation == Activation::Sigmoid {
+            let y = saved[lo.saved + j];
+            v * (y * (1.0 - y))
+        } else {
+            v
+        };
+    }
+    deltas[lo.delta..lo.delta + lo.fan_out].copy_from_slice(&g[..lo.fan_out]);
+    for l in (0..layers.len()).rev() {
+        let ly = layers[l];
+        if l == 0 && dx.is_empty() {
+            break;
+        }
+        // δ_below[k] = Σ_j W[j][k]·δ[j], masked by the ReLU of the layer below (none for the input).
+        for (k, hk) in h[..ly.fan_in].iter_mut().enumerate() {
+            let v = dot_quads(0.0, &g[..ly.fan_out], |j| {
+                params[ly.weights + j * ly.fan_in + k]
+            });
+            *hk = if l > 0 && saved[layers[l - 1].saved + k] <= 0.0 {
+                0.0
+            } else {
+                v
+            };
+        }
+        let h = &h[..ly.fan_in];
+        if l > 0 {
+            let below = layers[l - 1];
+            deltas[below.delta..below.delta + below.fan_out].copy_from_slice(h);
+        } else {
+            dx.copy_from_slice(h);
+        }
+        g[..ly.fan_in].copy_from_slice(h);
+    }
+}
+
+/// CPU reference backward, given the forward's `saved` activations and dL/doutput: dL/dparams and, if
+/// `input_grads`, dL/dinput. Sums as the kernels: per chunk of [`CHUNK_ROWS`] rows (parallel), rows in
+/// order, then the chunks in order; deterministic.
+pub fn backward_cpu(
+    config: &MlpConfig,
+    params: &[f32],
+    input: &[f32],
+    saved: &[f32],
+    d_output: &[f32],
+    input_grads: bool,
+) -> Result<MlpGradients, GpuError> {
+    let n = config.rows(params, input)?;
+    let ss = config.saved_per_row();
+    config.check_len("saved activations", saved.len(), n * ss)?;
+    config.check_len("dL/doutput", d_output.len(), n * config.output)?;
+    let layers = config.layers();
+    let np = config.n_params();
+    let (ni, ds) = (config.input, config.delta_per_row());
+    // Without input gradients, one row-sized buffer per chunk stands in (and stays empty for delta_row).
+    let mut d_input = vec![0.0f32; if input_grads { n * ni } else { 0 }];
+    let mut chunks: Vec<&mut [f32]> = if input_grads {
+        d_input.chunks_mut(CHUNK_ROWS * ni).collect()
+    } else {
+        Vec::new()
+    };
+    chunks.resize_with(MlpConfig::chunks(n), Default::default);
+    let partials: Vec<Vec<f32>> = chunks
+        .into_par_iter()
+        .enumerate()
+        .map(|(c, dx_chunk)| {
+            let mut part = vec![0.0f32; np];
+            let mut deltas = vec![0.0f32; ds];
+            let rows = CHUNK_ROWS.min(n - c * CHUNK_ROWS);
+            for i in 0..rows {
+                let r = c * CHUNK_ROWS + i;
+                let dx: &mut [f32] = if input_grads {
+                    &mut dx_chunk[i * ni..(i + 1) * ni]
+                } else {
+                    &mut []
+                };
+                let srow = &saved[r * ss..(r + 1) * ss];
+                let dy = &d_output[r * config.output..(r + 1) * config.output];
+                delta_row(config, &layers, params, srow, dy, &mut deltas, dx);
+                for (l, ly) in layers.iter().enumerate() {
+                    let a = if l == 0 {
+                        &input[r * ni..(r + 1) * ni]
+                    } else {
+                        let below = layers[l - 1];
+                        &srow[below.saved..below.saved + below.fan_out]
+                    };
+                    for j in 0..ly.fan_out {
+                        let d = deltas[ly.delta + j];
+                        let w = &mut part[ly.weights + j * ly.fan_in..][..ly.fan_in];
+                        for (wk, &ak) in w.iter_mut().zip(a) {
+                            *wk += d * ak;
+                        }
+                        part[ly.bias + j] += d;
+                    }
+                }
+            }
+            part
+        })
+        .collect();
+    let mut grad = vec![0.0f32; np];
+    for part in &partials {
+        for (g, p) in grad.iter_mut().zip(part) {
+            *g += p;
+        }
+    }
+    Ok(MlpGradients {
+        params: grad,
+        input: input_grads.then_some(d_input),
+    })
+}
+
+const FLAG_D_INPUT: u32 = 1;
+const FLAG_ACCUMULATE: u32 = 2;
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+struct MlpUniform {
+    /// n, layers, output activation, flags, n_params, saved stride, delta stride, partial offset,
+    /// chunk rows, chunks, weight-gradient blocks, current layer.
+    head: [u32; 12],
+    /// Per layer: (fan_in, fan_out, weights, bias), (delta, saved, first block, blocks).
+    layer: [[u32; 4]; 2 * MAX_LAYERS],
+}
+
+/// Parameter-gradient workgroups for one layer and chunk: its input columns plus the bias, 16 at a time.
+fn layer_blocks(layer: &LayerInfo) -> usize {
+    (layer.fan_in + 1).div_ceil(BLOCK)
+}
+
+fn weight_blocks(cfg: &MlpConfig) -> usize {
+    cfg.layers().iter().map(layer_blocks).sum()
+}
+
+fn uniform_for(cfg: &MlpConfig, n: u32, flags: u32, current: usize) -> MlpUniform {
+    let mut u = MlpUniform::zeroed();
+    let mut blocks = 0;
+    for (l, ly) in cfg.layers().iter().enumerate() {
+        let nb = layer_blocks(ly);
+        u.layer[2 * l] = [ly.fan_in, ly.fan_out, ly.weights, ly.bias].map(|v| v as u32);
+        u.layer[2 * l + 1] = [ly.delta, ly.saved, blocks, nb].map(|v| v as u32);
+        blocks += nb;
+    }
+    let chunks = MlpConfig::chunks(n as usize);
+    u.head = [
+        n as usize,
+        cfg.n_layers(),
+        (cfg.output_activation == Activation::Sigmoid) as usize,
+        flags as usize,
+        cfg.n_params(),
+        cfg.saved_per_row(),
+        cfg.delta_per_row(),
+        n as usize * cfg.delta_per_row(),
+        CHUNK_ROWS,
+        chunks,
+        blocks,
+        current,
+    ]
+    .map(|v| v as u32);
+    u
+}
+
+fn need(buffer: &wgpu::Buffer, words: usize, what: &str) -> Result<(), GpuError> {
+    let bytes = words as u64 * 4;
+    if buffer.size() < bytes {
+        return Err(GpuError::InvalidInput(format!(
+            "MLP: {what} buffer holds {} bytes, {bytes} needed",
+            buffer.size()
+        )));
+    }
+    Ok(())
+}
+
+/// Refuses batches whose word indices would not fit the kernels' u32 arithmetic.
+fn check_batch(cfg: &MlpConfig, n: u32) -> Result<(), GpuError> {
+    cfg.validate()?;
+    let widest = [cfg.input, cfg.output, cfg.saved_per_row()]
+        .into_iter()
+        .max()
+        .unwrap_or(0);
+    let words = (cfg.scratch_words(n as usize) as u64).max(n as u64 * widest as u64);
+    if words > u32::MAX as u64 {
+        return Err(GpuError::InvalidInput(format!(
+            "MLP: a batch of {n} rows needs {words} words in one buffer, more than 32-bit indices reach"
+        )));
+    }
+    Ok(())
+}
+
+/// The forward's buffers on the GPU, all the caller's.
+#[derive(Clone, Copy, Debug)]
+pub struct ForwardBuffers<'a> {
+    /// [`MlpConfig::n_params`] words.
+    pub params: &'a wgpu::Buffer,
+    /// `[n][input]`.
+    pub input: &'a wgpu::Buffer,
+    /// `[n][output]`, written.
+    pub output: &'a wgpu::Buffer,
+    /// `[n][saved_per_row]`, written: the layers pass their outputs through it (inference too), and the
+    /// backward reads it.
+    pub saved: &'a wgpu::Buffer,
+}
+
+/// The backward's buffers on the GPU, all the caller's.
+#[derive(Clone, Copy, Debug)]
+pub struct BackwardBuffers<'a> {
+    pub params: &'a wgpu::Buffer,
+    /// The forward's input `[n][input]`.
+    pub input: &'a wgpu::Buffer,
+    /// The forward's saved activations `[n][saved_per_row]`.
+    pub saved: &'a wgpu::Buffer,
+    /// dL/doutput `[n][output]`.
+    pub d_output: &'a wgpu::Buffer,
+    /// [`MlpConfig::scratch_words`]`(n)` words, contents irrelevant.
+    pub scratch: &'a wgpu::Buffer,
+    /// dL/dparams, [`MlpConfig::n_params`] words: overwritten, or added to with `accumulate`.
+    pub d_params: &'a wgpu::Buffer,
+    /// dL/dinput `[n][input]`, overwritten; `None` skips the input layer's transposed product.
+    pub d_input: Option<&'a wgpu::Buffer>,
+}
+
+/// Records the forward over `n` rows into `encoder`: one dispatch per layer, one thread per row. (One
+/// dispatch per layer rather than a fused loop: on lavapipe a barrier inside the layer loop cost ~30%.)
+pub async fn record_forward(
+    gpu: &Gpu,
+    encoder: &mut wgpu::CommandEncoder,
+    config: &MlpConfig,
+    n: u32,
+    buffers: &ForwardBuffers<'_>,
+) -> Result<(), GpuError> {
+    check_batch(config, n)?;
+    let rows = n as usize;
+    need(buffers.params, config.n_params(), "parameter")?;
+    need(buffers.input, rows * config.input, "input")?;
+    need(buffers.output, rows * config.output, "output")?;
+    need(
+        buffers.saved,
+        rows * config.saved_per_row(),
+        "saved-activation",
+    )?;
+    if n == 0 {
+        return Ok(());
+    }
+    for l in 0..config.n_layers() {
+        let u = gpu.uniform("mlp.uniform", &uniform_for(config, n, 0, l));
+        gpu.dispatch(
+            encoder,
+            &KERNEL,
+            "forward_layer",
+            &[
+                (0, &u),
+                (1, buffers.params),
+                (2, buffers.input),
+                (3, buffers.output),
+                (4, buffers.saved),
+            ],
+            n,
+        )
+        .await?;
+    }
+    Ok(())
+}
+
+/// Records the backward over `n` rows: per layer, last first, the pre-activation gradients (one thread per
+/// row; layer 0's gives dL/dinput); then per-chunk partial parameter gradients and their in-order sum into
+/// `d_params` (added to it if `accumulate`, otherwise written over it, so no clear pass is needed).
+/// Layers + 2 dispatches, no float atomics.
+pub async fn record_backward(
+    gpu: &Gpu,
+    encoder: &mut wgpu::CommandEncoder,
+    config: &MlpConfig,
+    n: u32,
+    buffers: &BackwardBuffers<'_>,
+    accumulate: bool,
+) -> Result<(), GpuError> {
+    check_batch(config, n)?;
+    let rows = n as usize;
+    need(buffers.params, config.n_params(), "parameter")?;
+    need(buffers.input, rows * config.input, "input")?;
+    need(
+        buffers.saved,
+        rows * config.saved_per_row(),
+        "saved-activation",
+    )?;
+    need(buffers.d_output, rows * config.output, "dL/doutput")?;
+    need(buffers.scratch, config.scratch_words(rows), "scratch")?;
+    need(buffers.d_params, config.n_params(), "dL/dparams")?;
+    if let Some(d) = buffers.d_input {
+        need(d, rows * config.input, "dL/dinput")?;
+    }
+    let mut flags = 0;
+    if buffers.d_input.is_some() {
+        flags |= FLAG_D_INPUT;
+    }
+    if accumulate {
+        flags |= FLAG_ACCUMULATE;
+    }
+    let uniform = uniform_for(config, n, flags, 0);
+    let u = gpu.uniform("mlp.uniform", &uniform);
+    if n > 0 {
+        // The binding must exist even when dL/dinput is not wanted.
+        let dummy;
+        let d_input = match buffers.d_input {
+            Some(d) => d,
+            None => {
+                dummy = gpu.output("mlp unused dL/dinput", 1)?;
+                &dummy
+            }
+        };
+        for l in (0..config.n_layers()).rev() {
+            let ul = gpu.uniform("mlp.uniform", &uniform_for(config, n, flags, l));
+            gpu.dispatch(
+                encoder,
+                &KERNEL,
+                "backward_layer",
+                &[
+                    (0, &ul),
+                    (1, buffers.params),
+                    (4, buffers.saved),
+                    (5, buffers.d_output),
+                    (6, buffers.scratch),
+                    (8, d_input),
+                ],
+                n,
+            )
+            .await?;
+        }
+        let groups = MlpConfig::chunks(rows) as u32 * weight_blocks(config) as u32;
+        gpu.dispatch(
+            encoder,
+            &KERNEL,
+            "backward_weights",
+            &[
+                (0, &u),
+                (2, buffers.input),
+                (4, buffers.saved),
+                (6, buffers.scratch),
+            ],
+            groups * WORKGROUP,
+        )
+        .await?;
+    }
+    gpu.dispatch(
+        encoder,
+        &KERNEL,
+        "reduce_grads",
+        &[(0, &u), (6, buffers.scratch), (7, buffers.d_params)],
+        config.n_params() as u32,
+    )
+    .await
+}
+
+fn row_count(config: &MlpConfig, params: &[f32], input: &[f32]) -> Result<u32, GpuError> {
+    let n = config.rows(params, input)?;
+    u32::try_from(n)
+        .map_err(|_| GpuError::InvalidInput(format!("MLP: {n} rows is more than one call takes")))
+}
+
+/// The WGSL forward on host data: uploads, one dispatch, one readback. Same result as [`forward_cpu`] up
+/// to f32 rounding.
+pub async fn forward_gpu(
+    gpu: &Gpu,
+    config: &MlpConfig,
+    params: &[f32],
+    input: &[f32],
+) -> Result<MlpForward, GpuError> {
+    let n = row_count(config, params, input)?;
+    let rows = n as usize;
+    let b_params = gpu.upload("mlp params", params)?;
+    let b_input = gpu.upload("mlp input", input)?;
+    let b_out = gpu.output("mlp output", rows * config.output)?;
+    let b_saved = gpu.output("mlp saved", rows * config.saved_per_row())?;
+    let mut enc = gpu.encoder("mlp forward");
+    let buffers = ForwardBuffers {
+        params: &b_params,
+        input: &b_input,
+        output: &b_out,
+        saved: &b_saved,
+    };
+    record_forward(gpu, &mut enc, config, n, &buffers).await?;
+    let mut out = gpu
+        .finish_and_read::<f32>(
+            enc,
+            &[
+                (&b_out, rows * config.output),
+                (&b_saved, rows * config.saved_per_row()),
+            ],
+        )
+        .await?
+        .into_iter();
+    Ok(MlpForward {
+        output: out.next().unwrap_or_default(),
+        saved: out.next().unwrap_or_default(),
+    })
+}
+
+/// The WGSL backward on host data (the forward's `saved` from either forward): dL/dparams and, if
+/// `input_grads`, dL/dinput, in one submit.
+pub async fn backward_gpu(
+    gpu: &Gpu,
+    config: &MlpConfig,
+    params: &[f32],
+    input: &[f32],
+    saved: &[f32],
+    d_output: &[f32],
+    input_grads: bool,
+) -> Result<MlpGradients, GpuError> {
+    let n = row_count(config, params, input)?;
+    let rows = n as usize;
+    config.check_len(
+        "saved activations",
+        saved.len(),
+        rows * config.saved_per_row(),
+    )?;
+    config.check_len("dL/doutput", d_output.len(), rows * config.output)?;
+    let b_params = gpu.upload("mlp params", params)?;
+    let b_input = gpu.upload("mlp input", input)?;
+    let b_saved = gpu.upload("mlp saved", saved)?;
+    let b_dout = gpu.upload("mlp dL/doutput", d_output)?;
+    let b_scratch = gpu.output("mlp scratch", config.scratch_words(rows))?;
+    let b_dparams = gpu.output("mlp dL/dparams", config.n_params())?;
+    let b_dinput = if input_grads {
+        Some(gpu.output("mlp dL/dinput", rows * config.input)?)
+    } else {
+        None
+    };
+    let mut enc = gpu.encoder("mlp backward");
+    let buffers = BackwardBuffers {
+        params: &b_params,
+        input: &b_input,
+        saved: &b_saved,
+        d_output: &b_dout,
+        scratch: &b_scratch,
+        d_params: &b_dparams,
+        d_input: b_dinput.as_ref(),
+    };
+    record_backward(gpu, &mut enc, config, n, &buffers, false).await?;
+    let mut reads = vec![(&b_dparams, config.n_params())];
+    if let Some(b) = &b_dinput {
+        reads.push((b, rows * config.input));
+    }
+    let mut out = gpu.finish_and_read::<f32>(enc, &reads).await?.into_iter();
+    Ok(MlpGradients {
+        params: out.next().unwrap_or_default(),
+        input: out.next(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 2 → 3 (ReLU) → 1 by hand: the parameter layout (row-major W, then b, layer by layer), the saved
+    /// activations and every gradient, in exactly representable numbers.
+    #[test]
+    fn tiny_network_by_hand() {
+        let c = MlpConfig {
+            input: 2,
+            hidden: 3,
+            hidden_layers: 1,
+            output: 1,
+            hidden_activation: Activation::Relu,
+            output_activation: Activation::None,
+        };
+        let layers = c.layers();
+        assert_eq!((layers[0].weights, layers[0].bias), (0, 6));
+        assert_eq!((layers[1].weights, layers[1].bias), (9, 12));
+        assert_eq!((layers[1].saved, layers[1].delta), (3, 3));
+        assert_eq!(
+            (c.n_params(), c.saved_per_row(), c.delta_per_row()),
+            (13, 3, 4)
+        );
+        // W0 = [[1, 2], [3, 4], [-5, -6]], b0 = [0.5, 0, 0]; W1 = [[1, -1, 2]], b1 = [0.25].
+        let params = [
+            1.0, 2.0, 3.0, 4.0, -5.0, -6.0, 0.5, 0.0, 0.0, 1.0, -1.0, 2.0, 0.25,
+        ];
+        let x = [1.0, 1.0];
+        let f = forward_cpu(&c, &params, &x).unwrap();
+        // z0 = [3.5, 7, −11] → a0 = [3.5, 7, 0]; y = 3.5 − 7 + 0.25.
+        assert_eq!(f.saved, vec![3.5, 7.0, 0.0]);
+        assert_eq!(f.output, vec![-3.25]);
+        let g = backward_cpu(&c, &params, &x, &f.saved, &[1.0], true).unwrap();
+        // δ1 = 1: dW1 = a0, db1 = 1; δ0 = W1ᵀδ1 masked = [1, −1, 0]: dW0 = δ0 ⊗ x, db0 = δ0; dx = W0ᵀδ0.
+        let want = [
+            1.0, 1.0, -1.0, -1.0, 0.0, 0.0, 1.0, -1.0, 0.0, 3.5, 7.0, 0.0, 1.0,
+        ];
+        assert_eq!(g.params, want);
+        assert_eq!(g.input, Some(vec![-2.0, -2.0]));
+    }
+
+    #[test]
+    fn scratch_and_chunks() {
+        let c = MlpConfig::nerfacto_colour();
+        assert_eq!(c.delta_per_row(), 64 + 64 + 3);
+        assert_eq!(MlpConfig::chunks(0), 0);
+        assert_eq!(MlpConfig::chunks(CHUNK_ROWS + 1), 2);
+        assert_eq!(
+            c.scratch_words(1000),
+            1000 * 131 + 1000usize.div_ceil(CHUNK_ROWS) * c.n_params()
+        );
+        // 16 input columns (the bias is one) per parameter-gradient block.
+        let blocks: Vec<usize> = c.layers().iter().map(layer_blocks).collect();
+        assert_eq!(blocks, vec![4, 5, 5]);
+    }
+}
