@@ -88,9 +88,9 @@ pub struct MlpConfig {
 pub struct LayerInfo {
     pub fan_in: usize,
     pub fan_out: usize,
-    /// First weight; W[j][k] is at `weights + j·fan_in + k`.
+    /// First weight; `W[j][k]` is at `weights + j·fan_in + k`.
     pub weights: usize,
-    /// First bias; b[j] is at `bias + j`.
+    /// First bias; `b[j]` is at `bias + j`.
     pub bias: usize,
     /// Offset of this layer's output in a saved row (hidden layers, and the output layer under Sigmoid).
     pub saved: usize,
