@@ -9,25 +9,11 @@ use silvr_core::field::mlp::{
     self, backward_cpu, backward_gpu, forward_cpu, forward_gpu, Activation, BackwardBuffers,
     ForwardBuffers, MlpConfig,
 };
-use silvr_core::gpu::{Gpu, GpuError, GpuOptions};
+use silvr_core::gpu::GpuError;
 
-const POISON: u32 = 0xDEAD_BEEF;
-
-/// A poisoned device, or `None` (test skipped with a message) when there is no adapter and the run does
-/// not demand one. The test scripts set `SILVR_REQUIRE_GPU=1`, so CI fails instead of skipping.
-fn gpu() -> Option<Gpu> {
-    match pollster::block_on(Gpu::new(GpuOptions {
-        poison: Some(POISON),
-        ..Default::default()
-    })) {
-        Ok(g) => Some(g),
-        Err(e) if std::env::var_os("SILVR_REQUIRE_GPU").is_none() => {
-            eprintln!("skipping GPU test: {e}");
-            None
-        }
-        Err(e) => panic!("SILVR_REQUIRE_GPU is set but no GPU is usable: {e}"),
-    }
-}
+mod common;
+use common::gpu;
+use common::POISON;
 
 fn cfg(
     input: usize,

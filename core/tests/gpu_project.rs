@@ -8,23 +8,8 @@ use silvr_core::geometry::Se3;
 use silvr_core::gpu::{Gpu, GpuError, GpuOptions, Kernel};
 use silvr_core::lidar::project::{self, ProjectionInput, NONE};
 
-const POISON: u32 = 0xDEAD_BEEF;
-
-/// A poisoned device, or `None` (test skipped with a message) when there is no adapter and the run does
-/// not demand one. The test scripts set `SILVR_REQUIRE_GPU=1`, so CI fails instead of skipping.
-fn gpu() -> Option<Gpu> {
-    match pollster::block_on(Gpu::new(GpuOptions {
-        poison: Some(POISON),
-        ..Default::default()
-    })) {
-        Ok(g) => Some(g),
-        Err(e) if std::env::var_os("SILVR_REQUIRE_GPU").is_none() => {
-            eprintln!("skipping GPU test: {e}");
-            None
-        }
-        Err(e) => panic!("SILVR_REQUIRE_GPU is set but no GPU is usable: {e}"),
-    }
-}
+mod common;
+use common::gpu;
 
 fn cameras() -> Vec<(&'static str, CameraModel)> {
     vec![

@@ -6,30 +6,16 @@
 
 use rand::{Rng, SeedableRng};
 use rand_xoshiro::Xoshiro256PlusPlus;
-use silvr_core::gpu::{Gpu, GpuError, GpuOptions};
+use silvr_core::gpu::GpuError;
 use silvr_core::render::{
     self, backward_cpu, losses_cpu, render_backward_gpu, render_cpu, render_gpu, Background,
     GpuRayBatch, Interval, LossConfig, RayBatch, RayTarget, RenderGradients, Sample, LOG_EPS,
     NORMAL_EPS,
 };
 
-const POISON: u32 = 0xDEAD_BEEF;
-
-/// A poisoned device, or `None` (test skipped with a message) when there is no adapter and the run does
-/// not demand one. The test scripts set `SILVR_REQUIRE_GPU=1`, so CI fails instead of skipping.
-fn gpu() -> Option<Gpu> {
-    match pollster::block_on(Gpu::new(GpuOptions {
-        poison: Some(POISON),
-        ..Default::default()
-    })) {
-        Ok(g) => Some(g),
-        Err(e) if std::env::var_os("SILVR_REQUIRE_GPU").is_none() => {
-            eprintln!("skipping GPU test: {e}");
-            None
-        }
-        Err(e) => panic!("SILVR_REQUIRE_GPU is set but no GPU is usable: {e}"),
-    }
-}
+mod common;
+use common::gpu;
+use common::POISON;
 
 fn rng(seed: u64) -> Xoshiro256PlusPlus {
     Xoshiro256PlusPlus::seed_from_u64(seed)
