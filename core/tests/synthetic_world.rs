@@ -126,17 +126,13 @@ fn lidar_normals_on_the_road_are_vertical() {
     let desk = deskew::deskew(&raw, &times, &odometry(&preset), t_ref).unwrap();
     let ring: Vec<u16> = sweep.points.iter().map(|p| p.ring).collect();
     let col: Vec<u16> = sweep.points.iter().map(|p| p.column).collect();
-    let img = normals::RangeImage::new(
+    let (_, n) = normals::sweep_normals(
+        &desk.positions,
         preset.lidar.beams as usize,
         preset.lidar.columns as usize,
         &ring,
         &col,
     );
-    let params = normals::NormalParams {
-        column_step: img.balanced_column_step(&desk.positions),
-        ..Default::default()
-    };
-    let n = normals::newell_normals(&desk.positions, &img, &ring, &col, params);
     let rot = preset.t_world_lidar(t_ref).rot;
     let mut errs = Vec::new();
     for (i, p) in sweep.points.iter().enumerate() {

@@ -175,6 +175,25 @@ pub fn newell_normals(
         .collect()
 }
 
+/// The whole normal step for one sweep, as the pipeline runs it: organise the points into a
+/// `rings` x `columns` range image, balance the column step to the ring spacing, and compute Newell normals
+/// with the default screening. Returns the range image too (the sky mask reads it).
+pub fn sweep_normals(
+    positions: &[DVec3],
+    rings: usize,
+    columns: usize,
+    ring: &[u16],
+    column: &[u16],
+) -> (RangeImage, Vec<DVec3>) {
+    let image = RangeImage::new(rings, columns, ring, column);
+    let params = NormalParams {
+        column_step: image.balanced_column_step(positions),
+        ..Default::default()
+    };
+    let normals = newell_normals(positions, &image, ring, column, params);
+    (image, normals)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -209,17 +209,13 @@ pub async fn generate(
         });
         let ring: Vec<u16> = sweep.points.iter().map(|p| p.ring).collect();
         let column: Vec<u16> = sweep.points.iter().map(|p| p.column).collect();
-        let rimg = normals::RangeImage::new(
+        let (rimg, nrm) = normals::sweep_normals(
+            &desk.positions,
             preset.lidar.beams as usize,
             preset.lidar.columns as usize,
             &ring,
             &column,
         );
-        let nparams = normals::NormalParams {
-            column_step: rimg.balanced_column_step(&desk.positions),
-            ..Default::default()
-        };
-        let nrm = normals::newell_normals(&desk.positions, &rimg, &ring, &column, nparams);
 
         // Ground truth of what the lidar observed: exact returns, and free space along their rays.
         let exact = simulate_sweep(
