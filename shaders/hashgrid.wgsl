@@ -97,6 +97,24 @@ fn corner_factors(t: vec3<f32>, b: vec3<u32>) -> vec3<f32> {
     return select(vec3<f32>(1.0) - t, t, b == vec3<u32>(1u));
 }
 
+// The 8 corners of a cell: each one's first parameter index and its trilinear weight (shared by the
+// forward pass and the table gradient, so both visit corners in the same order).
+struct Corners {
+    entry: array<u32, 8>,
+    weight: array<f32, 8>,
+}
+
+fn cell_corners(lv: Level, cell: Cell, nf: u32) -> Corners {
+    var out: Corners;
+    for (var c = 0u; c < 8u; c++) {
+        let b = corner_offset(c);
+        let w3 = corner_factors(cell.t, b);
+        out.weight[c] = w3.x * w3.y * w3.z;
+        out.entry[c] = (lv.offset + vertex_index(lv, cell.base + b)) * nf;
+    }
+    return out;
+}
+
 @compute @workgroup_size(64)
 fn encode(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
           @builtin(local_invocation_index) li: u32) {
@@ -110,14 +128,9 @@ fn encode(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: ve
     let nf = grid.features;
     let lv = grid.level[l];
     let cell = locate(lv, clamp(raw_position(p), vec3<f32>(0.0), vec3<f32>(1.0)));
-    var entry: array<u32, 8>;
-    var weight: array<f32, 8>;
-    for (var c = 0u; c < 8u; c++) {
-        let b = corner_offset(c);
-        let w3 = corner_factors(cell.t, b);
-        weight[c] = w3.x * w3.y * w3.z;
-        entry[c] = (lv.offset + vertex_index(lv, cell.base + b)) * nf;
-    }
+    let corners = cell_corners(lv, cell, nf);
+    let entry = corners.entry;
+    let weight = corners.weight;
     let out = p * grid.levels * nf + l * nf;
     for (var f = 0u; f < nf; f++) {
         var acc = 0.0;
@@ -165,14 +178,9 @@ fn backward_params(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups
     let nf = grid.features;
     let lv = grid.level[l];
     let cell = locate(lv, clamp(raw_position(p), vec3<f32>(0.0), vec3<f32>(1.0)));
-    var entry: array<u32, 8>;
-    var weight: array<f32, 8>;
-    for (var c = 0u; c < 8u; c++) {
-        let b = corner_offset(c);
-        let w3 = corner_factors(cell.t, b);
-        weight[c] = w3.x * w3.y * w3.z;
-        entry[c] = (lv.offset + vertex_index(lv, cell.base + b)) * nf;
-    }
+    let corners = cell_corners(lv, cell, nf);
+    let entry = corners.entry;
+    let weight = corners.weight;
     let row = p * grid.levels * nf + l * nf;
     for (var f = 0u; f < nf; f++) {
         let g = d_features[row + f];
