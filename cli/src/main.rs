@@ -11,6 +11,8 @@ use silvr_core::gpu::{Gpu, GpuOptions};
 use silvr_core::lidar::{map, project};
 use silvr_core::synthetic::{generate, Preset};
 
+mod train;
+
 #[derive(Parser)]
 #[command(
     name = "silvr",
@@ -79,6 +81,69 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Train a radiance field on a dataset (nerfstudio transforms.json, with lidar images when present).
+    Train {
+        /// Dataset folder (holding transforms.json) or the JSON file.
+        dataset: PathBuf,
+        /// silvr (colour + lidar depth + normals + sky), vision (colour only), depth-only (no normals).
+        #[arg(long, default_value = "silvr")]
+        mode: silvr_core::train::Mode,
+        #[arg(long, default_value_t = 2000)]
+        steps: u32,
+        /// Rays per batch.
+        #[arg(long, default_value_t = 4096)]
+        rays: usize,
+        /// Model sizes: nerfacto or small.
+        #[arg(long, default_value = "nerfacto")]
+        model: String,
+        /// Output folder: checkpoint, train.json, renders/, points.ply.
+        #[arg(long, default_value = "silvr-train")]
+        out: PathBuf,
+        /// Continue from a checkpoint written by an earlier run on the same dataset.
+        #[arg(long)]
+        resume: Option<PathBuf>,
+        /// Write a checkpoint every this many steps (0: only at the end).
+        #[arg(long, default_value_t = 500)]
+        checkpoint_every: u32,
+        /// auto, wgpu or cpu.
+        #[arg(long, default_value = "auto")]
+        backend: String,
+        /// Integer image downscale.
+        #[arg(long, default_value_t = 1)]
+        downscale: u32,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Training rays rendered for the exported point cloud (0: none).
+        #[arg(long, default_value_t = 200_000)]
+        export_rays: usize,
+        /// DS-NeRF σ schedule, standard deviation in metres: start, end (decay ×0.99985 per step).
+        #[arg(long, num_args = 2, value_names = ["START", "END"])]
+        depth_sigma: Option<Vec<f32>>,
+    },
+    /// Training throughput and time to quality: field samples/s (forward + backward), rays/s per step,
+    /// seconds to a target training PSNR. JSON on stdout.
+    BenchTrain {
+        /// Dataset folder (e.g. from `silvr synth`).
+        dataset: PathBuf,
+        #[arg(long, default_value = "silvr")]
+        mode: silvr_core::train::Mode,
+        /// auto, wgpu or cpu.
+        #[arg(long, default_value = "auto")]
+        backend: String,
+        #[arg(long, default_value = "nerfacto")]
+        model: String,
+        #[arg(long, default_value_t = 4096)]
+        rays: usize,
+        /// Most steps to run while waiting for the target PSNR.
+        #[arg(long, default_value_t = 2000)]
+        steps: u32,
+        /// Training-batch PSNR (mean of the last 20 steps) that counts as reached.
+        #[arg(long, default_value_t = 25.0)]
+        target_psnr: f64,
+        /// Stop after this many seconds even if the target is not reached.
+        #[arg(long, default_value_t = 300.0)]
+        max_seconds: f64,
+    },
     /// The main job: generate the synthetic world, build the reconstructions, evaluate, write report.json.
     Demo {
         /// `ci` or `default`; `ci` when the only GPU adapter is a software one.
@@ -119,7 +184,57 @@ fn main() {
             error_ply.as_deref(),
             keep_unknown,
         ),
+        Command::Train {
+            dataset,
+            mode,
+            steps,
+            rays,
+            model,
+            out,
+            resume,
+            checkpoint_every,
+            backend,
+            downscale,
+            seed,
+            export_rays,
+            depth_sigma,
+        } => train::run(&train::TrainArgs {
+            depth_sigma: depth_sigma.map(|v| (v[0], v[1])),
+            dataset,
+            mode,
+            steps,
+            rays,
+            model,
+            out,
+            resume,
+            checkpoint_every,
+            backend,
+            downscale,
+            seed,
+            export_rays,
+            quiet: false,
+        })
+        .map(|_| ()),
         Command::Demo { preset, seed, out } => demo(preset.as_deref(), seed, &out),
+        Command::BenchTrain {
+            dataset,
+            mode,
+            backend,
+            model,
+            rays,
+            steps,
+            target_psnr,
+            max_seconds,
+        } => train::bench(&train::BenchArgs {
+            dataset,
+            mode,
+            backend,
+            model,
+            rays,
+            steps,
+            target_psnr,
+            max_seconds,
+        }),
         Command::Bench { points, reps, json } => bench(points, reps, json),
     };
     if let Err(e) = result {
@@ -308,28 +423,104 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
     write_error_cloud(&ev, &out.join("lidar_only_error.ply"))?;
     let lidar_s = t.elapsed().as_secs_f64();
 
-    let methods = serde_json::json!({ "lidar_only": report_json(&ev.report) });
+    // The two radiance fields: vision-only (nerfacto) and lidar-visual (SiLVR), same model and steps.
+    let (steps, model, rays) = demo_training(name);
+    let mut methods = serde_json::json!({ "lidar_only": report_json(&ev.report) });
+    let mut rows = vec![("lidar_only".to_string(), ev.report.clone())];
+    let mut timing = serde_json::json!({
+        "synth_s": synth_s,
+        "lidar_only_s": lidar_s,
+    });
+    for (key, mode) in [
+        ("vision_only", silvr_core::train::Mode::Vision),
+        ("silvr", silvr_core::train::Mode::Silvr),
+    ] {
+        let t = Instant::now();
+        let dir = out.join(key);
+        let summary = train::run(&train::TrainArgs {
+            dataset: dataset.clone(),
+            mode,
+            steps,
+            rays,
+            model: model.into(),
+            out: dir.clone(),
+            resume: None,
+            checkpoint_every: 0,
+            backend: "auto".into(),
+            downscale: 1,
+            seed,
+            export_rays: 100_000,
+            quiet: true,
+            depth_sigma: None,
+        })?;
+        let points = summary
+            .points
+            .clone()
+            .context("training exported no points")?;
+        let ev = eval::evaluate_files_full(&points, &dataset, &GeometryOptions::default())?;
+        write_error_cloud(&ev, &dir.join("error.ply"))?;
+        let mut v = report_json(&ev.report);
+        let psnr = train::mean(summary.views.iter().map(|v| v.psnr));
+        let ssim = train::mean(summary.views.iter().map(|v| v.ssim));
+        if let Some(obj) = v.as_object_mut() {
+            obj.insert("psnr".into(), psnr.into());
+            obj.insert("ssim".into(), ssim.into());
+            obj.insert("heldout_views".into(), summary.views.len().into());
+        }
+        methods[key] = v;
+        timing[key] = serde_json::json!({
+            "train_s": summary.train_s,
+            "total_s": t.elapsed().as_secs_f64(),
+            "steps": summary.steps,
+            "rays_per_batch": rays,
+            "model": model,
+            "backend": summary.backend,
+        });
+        eprintln!(
+            "[demo] {key}: {} steps in {:.1} s, held-out PSNR {psnr:.2} dB, SSIM {ssim:.3}",
+            summary.steps, summary.train_s
+        );
+        rows.push((key.to_string(), ev.report));
+    }
+    // The WGSL training step against the CPU reference on this dataset (when training ran on the CPU
+    // fallback, this is where the demo exercises the engine's kernels).
+    let check = train::crosscheck(&dataset, model, 256)?;
+    eprintln!("[demo] WGSL step vs CPU reference: {check}");
+    let max_diff = check["max_rel_grad_diff"].as_f64().unwrap_or(f64::INFINITY);
+    if max_diff > 1e-2 {
+        anyhow::bail!(
+            "the WGSL training step disagrees with the CPU reference on {}: {check}",
+            dataset.display()
+        );
+    }
+    timing["wgsl_crosscheck"] = check;
+    timing["total_s"] = total.elapsed().as_secs_f64().into();
+    timing["adapter"] = serde_json::to_value(gpu.report())?;
     let report = serde_json::json!({
         "preset": name,
         "seed": seed,
         "dataset": dataset,
         "methods": methods,
-        "timing": {
-            "synth_s": synth_s,
-            "lidar_only_s": lidar_s,
-            "total_s": total.elapsed().as_secs_f64(),
-            "adapter": gpu.report(),
-        },
+        "timing": timing,
     });
     let path = out.join("report.json");
     write_atomic(&path, serde_json::to_string_pretty(&report)?.as_bytes())?;
-    print_table(&[("lidar_only", &ev.report)]);
+    let table: Vec<(&str, &GeometryReport)> = rows.iter().map(|(k, r)| (k.as_str(), r)).collect();
+    print_table(&table);
     eprintln!(
         "[demo] report: {} ({:.1} s)",
         path.display(),
         total.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// Training length and model size per preset: `ci` fits the 5-minute budget of a 2-core machine.
+fn demo_training(preset: &str) -> (u32, &'static str, usize) {
+    match preset {
+        "ci" => (300, "small", 1024),
+        _ => (5000, "nerfacto", 4096),
+    }
 }
 
 /// The report keys of one method (full report underneath, for the curious).

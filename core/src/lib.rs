@@ -24,5 +24,7 @@ pub mod lidar;
 pub mod pointcloud;
 pub mod render;
 pub mod rig;
+pub mod sampler;
 pub mod shaders;
 pub mod synthetic;
+pub mod train;

@@ -12,3 +12,6 @@ pub const RENDER: &str = include_str!("../../shaders/render.wgsl");
 
 /// Small fully-connected MLP (nerfacto's density and colour heads), forward and backward (`field::mlp`).
 pub const MLP: &str = include_str!("../../shaders/mlp.wgsl");
+
+/// nerfacto's proposal sampling, field glue, sampler losses, gradient plumbing and Adam (`train::gpu`).
+pub const TRAIN: &str = include_str!("../../shaders/train.wgsl");

@@ -50,7 +50,7 @@ fn gpu_info_without_a_vulkan_driver_is_a_clear_error() {
 }
 
 #[test]
-fn demo_ci_writes_a_report_with_an_accurate_lidar_map() {
+fn demo_ci_reports_lidar_vision_and_silvr_with_silvr_beating_vision() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("demo");
     let run = Command::new(build_silvr())
@@ -85,6 +85,46 @@ fn demo_ci_writes_a_report_with_an_accurate_lidar_map() {
     assert!(acc < 0.05, "lidar-only accuracy {acc} m");
     assert!(lidar["precision_10cm"].as_f64().unwrap() > 0.95);
     assert!(out.join("lidar_only.ply").is_file() && out.join("dataset/transforms.json").is_file());
+
+    // The trained fields: same geometry keys plus image quality, and SiLVR ahead of vision-only.
+    let m = &report["methods"];
+    for method in ["vision_only", "silvr"] {
+        for key in [
+            "accuracy_m",
+            "completeness_m",
+            "fscore_10cm",
+            "psnr",
+            "ssim",
+        ] {
+            assert!(
+                m[method][key].is_number(),
+                "methods.{method}.{key} missing: {}",
+                m[method]
+            );
+        }
+        let t = &report["timing"][method];
+        assert!(t["train_s"].as_f64().unwrap() > 0.0, "{t}");
+        assert!(t["backend"].is_string() && t["adapter"].is_string(), "{t}");
+        assert!(out.join(method).join("points.ply").is_file());
+    }
+    let f = |method: &str, key: &str| m[method][key].as_f64().unwrap();
+    assert!(
+        f("silvr", "accuracy_m") < f("vision_only", "accuracy_m"),
+        "SiLVR accuracy {} m is not better than vision-only {} m",
+        f("silvr", "accuracy_m"),
+        f("vision_only", "accuracy_m")
+    );
+    assert!(
+        f("silvr", "fscore_10cm") > f("vision_only", "fscore_10cm"),
+        "SiLVR F@10cm {} is not above vision-only {}",
+        f("silvr", "fscore_10cm"),
+        f("vision_only", "fscore_10cm")
+    );
+    assert!(
+        f("silvr", "psnr") > 23.0,
+        "SiLVR held-out PSNR {}",
+        f("silvr", "psnr")
+    );
 }
 
 #[test]

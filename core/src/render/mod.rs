@@ -199,7 +199,7 @@ impl LossConfig {
         Ok(())
     }
 
-    fn inv_two_var(&self) -> f32 {
+    pub fn inv_two_var(&self) -> f32 {
         1.0 / (2.0 * self.depth_sigma * self.depth_sigma)
     }
 
@@ -529,6 +529,40 @@ fn ray_loss_backward(
         }
     }
     loss
+}
+
+/// The depth and sky terms on one ray's weights alone (SiLVR applies them to the proposal levels too):
+/// returns (DS-NeRF term, Σw²) and adds `scale_depth`·∂/∂w and `scale_sky`·∂/∂w into `d_w`.
+/// `t_edges` has one more entry than `w`; `inv_two_var` = 1/(2σ²).
+pub fn weight_losses(
+    w: &[f32],
+    t_edges: &[f32],
+    target: &RayTarget,
+    inv_two_var: f32,
+    scale_depth: f32,
+    scale_sky: f32,
+    d_w: &mut [f32],
+) -> (f32, f32) {
+    let sky = target.sky != 0;
+    let lidar = !sky && target.depth > 0.0;
+    let (mut ld, mut ls) = (0.0f32, 0.0f32);
+    for i in 0..w.len() {
+        let iv = Interval {
+            start: t_edges[i],
+            end: t_edges[i + 1],
+        };
+        if lidar {
+            let e = iv.mid() - target.depth;
+            let g = (-e * e * inv_two_var).exp() * iv.delta();
+            ld -= (w[i] + LOG_EPS).ln() * g;
+            d_w[i] -= scale_depth * g / (w[i] + LOG_EPS);
+        }
+        if sky {
+            ls += w[i] * w[i];
+            d_w[i] += scale_sky * 2.0 * w[i];
+        }
+    }
+    (ld, ls)
 }
 
 /// CPU reference forward: weights and per-ray outputs.

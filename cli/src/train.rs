@@ -1,0 +1,420 @@
+//! `silvr train`: fits a radiance field to a dataset, with progress, checkpoints, held-out scores, renders
+//! and the exported point cloud.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use silvr_core::field::model::ModelConfig;
+use silvr_core::gpu::{Gpu, GpuOptions};
+use silvr_core::train::checkpoint::Checkpoint;
+use silvr_core::train::data::{LoadOptions, TrainData};
+use silvr_core::train::export::ViewScore;
+use silvr_core::train::{Backend, Mode, TrainConfig, Trainer};
+
+/// Model sizes by name: `nerfacto` (the paper's) or `small` (a quick look, and the `ci` demo).
+pub fn model_preset(name: &str, images: usize) -> Result<ModelConfig> {
+    let mut m = ModelConfig::nerfacto(images);
+    match name {
+        "nerfacto" => {}
+        "small" => {
+            m.field.grid.log2_table_size = 17;
+            m.field.grid.finest_resolution = 1024;
+            m.sampler.proposal_samples = vec![64, 32];
+            m.sampler.samples = 24;
+            for p in &mut m.proposals {
+                p.grid.log2_table_size = 15;
+            }
+        }
+        o => bail!("unknown model size {o:?} (nerfacto, small)"),
+    }
+    Ok(m)
+}
+
+/// σ decays by SiLVR's 0.99985 per step, or faster when the run is short, so that it reaches its floor
+/// by 60% of the run (coarse to fine within any run length).
+pub fn sigma_decay_for(c: &TrainConfig, steps: u32) -> f32 {
+    let ratio = (c.depth_sigma_end / c.depth_sigma_start) as f64;
+    let needed = ratio.powf(1.0 / (0.6 * steps.max(1) as f64)) as f32;
+    needed.min(0.99985)
+}
+
+pub struct TrainArgs {
+    pub dataset: PathBuf,
+    pub mode: Mode,
+    pub steps: u32,
+    pub rays: usize,
+    pub model: String,
+    pub out: PathBuf,
+    pub resume: Option<PathBuf>,
+    pub checkpoint_every: u32,
+    pub backend: String,
+    pub downscale: u32,
+    pub seed: u64,
+    pub export_rays: usize,
+    pub quiet: bool,
+    pub depth_sigma: Option<(f32, f32)>,
+}
+
+/// What a finished training run measured.
+pub struct TrainSummary {
+    pub train_s: f64,
+    pub steps: u32,
+    pub final_psnr_train: f64,
+    pub views: Vec<ViewScore>,
+    pub points: Option<PathBuf>,
+    pub backend: String,
+}
+
+/// `--backend`: `wgpu` forces the WGSL engine (on any adapter, lavapipe included), `cpu` the rayon
+/// reference; `auto` takes the WGSL engine on a hardware GPU and the CPU reference where the only adapter
+/// is a software one (lavapipe runs the same kernels ~10x slower than the CPU reference).
+pub fn backend_for(backend: &str) -> Result<(Backend, String)> {
+    let open = || {
+        pollster::block_on(Gpu::new(GpuOptions::default()))
+            .context("--backend wgpu needs a WebGPU adapter")
+    };
+    match backend {
+        "cpu" => Ok((Backend::Cpu, "cpu (rayon)".into())),
+        "wgpu" => {
+            let g = open()?;
+            let name = g.report().to_string();
+            Ok((Backend::Wgpu(g), name))
+        }
+        "auto" => match pollster::block_on(Gpu::new(GpuOptions::default())) {
+            Ok(g) if !g.report().software => {
+                let name = g.report().to_string();
+                Ok((Backend::Wgpu(g), name))
+            }
+            Ok(g) => Ok((
+                Backend::Cpu,
+                format!(
+                    "cpu (rayon; the only adapter, {}, is software)",
+                    g.report().name
+                ),
+            )),
+            Err(e) => Ok((Backend::Cpu, format!("cpu (rayon; no GPU adapter: {e})"))),
+        },
+        o => bail!("unknown backend {o:?} (auto, wgpu, cpu)"),
+    }
+}
+
+pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
+    let t_load = Instant::now();
+    let data = TrainData::load(
+        &a.dataset,
+        &LoadOptions {
+            downscale: a.downscale,
+            skip_lidar: a.mode == Mode::Vision,
+        },
+    )?;
+    for s in &data.skipped {
+        eprintln!("warning: skipped {s}");
+    }
+    if a.mode != Mode::Vision && !data.has_lidar() {
+        bail!(
+            "{}: mode {} needs lidar depth images (depth_file_path), and this dataset has none; use --mode vision",
+            a.dataset.display(),
+            a.mode.name()
+        );
+    }
+    if !a.quiet {
+        eprintln!(
+            "loaded {} images ({} train, {} held out) in {:.1} s; scene scale {:.4} /m",
+            data.images.len(),
+            data.train.len(),
+            data.val.len(),
+            t_load.elapsed().as_secs_f64(),
+            data.frame.scale
+        );
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let (engine, backend) = backend_for(&a.backend)?;
+    if !a.quiet {
+        eprintln!("backend: {backend}");
+    }
+    let mut trainer = match &a.resume {
+        Some(p) => {
+            let ck = Checkpoint::load(p)?;
+            let mut t = Trainer::resume(data, ck, engine)?;
+            t.config.steps = a.steps;
+            if !a.quiet {
+                eprintln!("resumed {} at step {}", p.display(), t.step);
+            }
+            t
+        }
+        None => {
+            let model = model_preset(&a.model, data.train.len())?;
+            let config = TrainConfig {
+                mode: a.mode,
+                steps: a.steps,
+                rays_per_batch: a.rays,
+                seed: a.seed,
+                adam: silvr_core::train::adam::AdamConfig {
+                    decay_steps: a.steps.max(1),
+                    lr_final: 1e-3,
+                    ..Default::default()
+                },
+                ..Default::default()
+            };
+            let mut config = config;
+            if let Some((a0, a1)) = a.depth_sigma {
+                config.depth_sigma_start = a0;
+                config.depth_sigma_end = a1;
+            }
+            config.depth_sigma_decay = sigma_decay_for(&config, a.steps);
+            Trainer::new(data, model, config, engine)?
+        }
+    };
+    let ckpt = a.out.join("checkpoint.ckpt");
+    let t0 = Instant::now();
+    let start = trainer.step;
+    let mut last_print = Instant::now();
+    while trainer.step < a.steps {
+        let stats = pollster::block_on(trainer.train_step())?;
+        let done = trainer.step;
+        if !a.quiet && (last_print.elapsed().as_secs_f64() > 5.0 || done == a.steps) {
+            last_print = Instant::now();
+            let el = t0.elapsed().as_secs_f64();
+            let eta = el / (done - start) as f64 * (a.steps - done) as f64;
+            eprintln!(
+                "step {done}/{} loss {:.4} psnr {:.2} dB depth {:.4} il {:.4} ({:.1} s, ETA {:.0} s)",
+                a.steps,
+                stats.loss,
+                stats.psnr(),
+                stats.depth,
+                stats.interlevel,
+                el,
+                eta
+            );
+        }
+        if a.checkpoint_every > 0 && done % a.checkpoint_every == 0 {
+            pollster::block_on(trainer.checkpoint())?.save(&ckpt)?;
+        }
+    }
+    let train_s = t0.elapsed().as_secs_f64();
+    pollster::block_on(trainer.checkpoint())?.save(&ckpt)?;
+    let recent = &trainer.history[trainer.history.len().saturating_sub(20)..];
+    let mse = recent.iter().map(|s| s.rgb_mse).sum::<f64>() / recent.len().max(1) as f64;
+    // Held-out views: scores and renders.
+    let renders = a.out.join("renders");
+    std::fs::create_dir_all(&renders)?;
+    let mut views = Vec::new();
+    for (k, &i) in trainer.data.val.clone().iter().enumerate() {
+        // Normals for the first held-out view only: they cost six more density evaluations per sample.
+        let v = pollster::block_on(trainer.render_view(i, k == 0))?;
+        let score = trainer.score_view(i, &v)?;
+        let (rgb, depth, normals) = trainer.view_pngs(i, &v);
+        let stem = trainer.data.images[i]
+            .name
+            .replace(['/', '\\'], "_")
+            .trim_end_matches(".png")
+            .trim_end_matches(".jpg")
+            .to_string();
+        write(&renders.join(format!("{stem}_rgb.png")), &rgb)?;
+        write(&renders.join(format!("{stem}_depth.png")), &depth)?;
+        if k == 0 {
+            write(&renders.join(format!("{stem}_normal.png")), &normals)?;
+        }
+        views.push(score);
+    }
+    let points = if a.export_rays > 0 {
+        let cloud = pollster::block_on(trainer.export_points(a.export_rays, a.seed ^ 0xE0))?;
+        let p = a.out.join("points.ply");
+        silvr_core::pointcloud::write_ply(&p, &cloud)?;
+        Some(p)
+    } else {
+        None
+    };
+    let summary = TrainSummary {
+        train_s,
+        steps: trainer.step,
+        final_psnr_train: -10.0 * mse.max(1e-12).log10(),
+        views,
+        points,
+        backend,
+    };
+    let json = serde_json::json!({
+        "mode": trainer.config.mode.name(),
+        "steps": summary.steps,
+        "train_s": summary.train_s,
+        "backend": summary.backend,
+        "train_psnr_last20": summary.final_psnr_train,
+        "heldout": summary.views,
+        "heldout_psnr_mean": mean(summary.views.iter().map(|v| v.psnr)),
+        "heldout_ssim_mean": mean(summary.views.iter().map(|v| v.ssim)),
+        "points": summary.points,
+    });
+    write(
+        &a.out.join("train.json"),
+        serde_json::to_string_pretty(&json)?.as_bytes(),
+    )?;
+    if !a.quiet {
+        eprintln!(
+            "trained {} steps in {:.1} s; held-out PSNR {:.2} dB, SSIM {:.3}",
+            summary.steps,
+            summary.train_s,
+            mean(summary.views.iter().map(|v| v.psnr)),
+            mean(summary.views.iter().map(|v| v.ssim))
+        );
+    }
+    Ok(summary)
+}
+
+pub fn mean(v: impl Iterator<Item = f64>) -> f64 {
+    let (s, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
+    if n == 0 {
+        f64::NAN
+    } else {
+        s / n as f64
+    }
+}
+
+fn write(path: &Path, bytes: &[u8]) -> Result<()> {
+    silvr_core::dataset::write_atomic(path, bytes)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+pub struct BenchArgs {
+    pub dataset: PathBuf,
+    pub mode: Mode,
+    pub backend: String,
+    pub model: String,
+    pub rays: usize,
+    pub steps: u32,
+    pub target_psnr: f64,
+    pub max_seconds: f64,
+}
+
+fn new_trainer(
+    dataset: &Path,
+    mode: Mode,
+    model: &str,
+    rays: usize,
+    steps: u32,
+    backend: Backend,
+) -> Result<Trainer> {
+    let data = TrainData::load(
+        dataset,
+        &LoadOptions {
+            downscale: 1,
+            skip_lidar: mode == Mode::Vision,
+        },
+    )?;
+    let model = model_preset(model, data.train.len())?;
+    let mut config = TrainConfig {
+        mode,
+        steps,
+        rays_per_batch: rays,
+        adam: silvr_core::train::adam::AdamConfig {
+            decay_steps: steps.max(1),
+            lr_final: 1e-3,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    config.depth_sigma_decay = sigma_decay_for(&config, steps);
+    Ok(Trainer::new(data, model, config, backend)?)
+}
+
+/// `silvr bench-train`: per-step timings (each step ends with its loss readback, so a step's time is the
+/// device's), field evaluations per second, and the time to a training PSNR.
+pub fn bench(a: &BenchArgs) -> Result<()> {
+    let (backend, adapter) = backend_for(&a.backend)?;
+    let mut t = new_trainer(&a.dataset, a.mode, &a.model, a.rays, a.steps, backend)?;
+    let m = &t.model;
+    let per_ray_levels: usize =
+        m.sampler.proposal_samples.iter().sum::<usize>() + m.sampler.samples;
+    let t0 = Instant::now();
+    let mut step_s = Vec::new();
+    let mut evals = Vec::new();
+    let mut reached: Option<(u32, f64)> = None;
+    while t.step < a.steps && t0.elapsed().as_secs_f64() < a.max_seconds {
+        let batch_normals = if a.mode == Mode::Silvr {
+            t.batch(t.step).normal_rays
+        } else {
+            0
+        };
+        let ts = Instant::now();
+        pollster::block_on(t.train_step())?;
+        step_s.push(ts.elapsed().as_secs_f64());
+        // Field evaluations: every level's samples, plus six FD evaluations per final sample of a
+        // normal ray.
+        evals.push(a.rays * per_ray_levels + 6 * batch_normals * t.model.sampler.samples);
+        let h = &t.history;
+        if reached.is_none() && h.len() >= 20 {
+            let mse = h[h.len() - 20..].iter().map(|s| s.rgb_mse).sum::<f64>() / 20.0;
+            if -10.0 * mse.log10() >= a.target_psnr {
+                reached = Some((t.step, t0.elapsed().as_secs_f64()));
+                break;
+            }
+        }
+    }
+    // Steady state: skip the first steps (pipeline compiles, buffer allocation).
+    let skip = (step_s.len() / 10)
+        .clamp(1, 20)
+        .min(step_s.len().saturating_sub(1));
+    let tot_s: f64 = step_s[skip..].iter().sum();
+    let tot_e: usize = evals[skip..].iter().sum();
+    let mut sorted = step_s[skip..].to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted.get(sorted.len() / 2).copied().unwrap_or(f64::NAN);
+    let last = &t.history[t.history.len().saturating_sub(20)..];
+    let mse = last.iter().map(|s| s.rgb_mse).sum::<f64>() / last.len().max(1) as f64;
+    let v = serde_json::json!({
+        "backend": adapter,
+        "dataset": a.dataset,
+        "mode": a.mode.name(),
+        "model": a.model,
+        "rays_per_batch": a.rays,
+        "steps": t.step,
+        "median_step_s": median,
+        "rays_per_s": a.rays as f64 / median,
+        "field_samples_per_s": tot_e as f64 / tot_s,
+        "target_psnr": a.target_psnr,
+        "reached_at_step": reached.map(|r| r.0),
+        "time_to_target_s": reached.map(|r| r.1),
+        "final_train_psnr_last20": -10.0 * mse.max(1e-12).log10(),
+        "wall_s": t0.elapsed().as_secs_f64(),
+        "note": "field samples: proposal + final samples per ray and 6 FD evaluations per final sample of a normal ray, each forward and backward; step time includes batch assembly on the CPU and the per-step loss readback",
+    });
+    println!("{}", serde_json::to_string_pretty(&v)?);
+    Ok(())
+}
+
+/// The WGSL engine's step against the CPU reference on one batch of this dataset (same parameters,
+/// same rays): the largest gradient difference relative to each tensor's largest gradient, and the loss
+/// of each. Run by the demo so that the engine it ships is checked on the data it reports.
+pub fn crosscheck(dataset: &Path, model: &str, rays: usize) -> Result<serde_json::Value> {
+    let gpu = pollster::block_on(Gpu::new(GpuOptions::default()))?;
+    let t = new_trainer(dataset, Mode::Silvr, model, rays, 1000, Backend::Cpu)?;
+    let batch = t.batch(0);
+    let sch = t.schedule(0);
+    let (g_cpu, s_cpu) = silvr_core::train::cpu::train_step(&t.model, &t.params, &batch, &sch)?;
+    let mut eng = silvr_core::train::gpu::GpuEngine::new(
+        gpu.clone(),
+        &t.model,
+        &t.params,
+        &t.adam.m,
+        &t.adam.v,
+    )?;
+    let s_gpu = pollster::block_on(eng.step(&batch, &sch, &t.config.adam, 1e-2, 1, false))?;
+    let g_gpu = pollster::block_on(eng.download_grads())?;
+    let mut worst = 0.0f64;
+    for (a, b) in g_gpu.iter().zip(&g_cpu) {
+        let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-12) as f64;
+        for (x, y) in a.iter().zip(b) {
+            worst = worst.max(((x - y).abs() as f64 / scale).min(f64::MAX));
+            if !x.is_finite() {
+                worst = f64::INFINITY;
+            }
+        }
+    }
+    Ok(serde_json::json!({
+        "adapter": gpu.report().to_string(),
+        "rays": batch.rays.len(),
+        "loss_cpu": s_cpu.loss,
+        "loss_wgsl": s_gpu.loss,
+        "max_rel_grad_diff": worst,
+    }))
+}

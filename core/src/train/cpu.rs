@@ -1,0 +1,648 @@
+//! The training step and the renderer on the CPU: the Rust references of every kernel chained, rayon over
+//! rays. This is the referee of the WGSL engine and the fallback where the only adapter is a software one.
+
+use rayon::prelude::*;
+
+use crate::field::encoding::contract_unit;
+use crate::field::mlp;
+use crate::field::model::{
+    colour_input, density_backward_cpu, density_forward_unit_cpu, density_of, fd_normal,
+    fd_normal_backward, fd_positions, DensityEval, ModelConfig, Params, APPEARANCE, COLOUR,
+    DENSITY, GRID, PROPOSAL,
+};
+use crate::gpu::GpuError;
+use crate::render::{
+    self, Background, Interval, LossConfig, RayBatch, RayOutput, RayTarget, Sample,
+};
+use crate::sampler::{self, Spacing};
+
+/// One ray in the scene frame: unit direction, appearance row (`u32::MAX` = the mean embedding).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TrainRay {
+    pub origin: [f32; 3],
+    pub dir: [f32; 3],
+    pub appearance: u32,
+}
+
+/// A training batch. Rays with a lidar normal come first (`normal_rays` of them), so normals need only be
+/// computed for a prefix. `jitter` holds one uniform per ray and sampling level, ray-major.
+#[derive(Clone, Debug, Default)]
+pub struct Batch {
+    pub rays: Vec<TrainRay>,
+    pub targets: Vec<RayTarget>,
+    pub jitter: Vec<f32>,
+    pub normal_rays: usize,
+}
+
+/// What changes from step to step.
+#[derive(Clone, Copy, Debug)]
+pub struct StepSchedule {
+    pub step: u32,
+    /// Exponent of the proposal weights before resampling.
+    pub anneal: f32,
+    /// Final-level losses: colour, depth and sky already divided by the level count where SiLVR averages
+    /// over levels; σ in scene units.
+    pub losses: LossConfig,
+    /// Depth / sky weights on each proposal level.
+    pub proposal_depth: f32,
+    pub proposal_sky: f32,
+    pub interlevel: f32,
+    pub distortion: f32,
+    pub normals: bool,
+}
+
+/// Batch means of the loss terms.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct StepStats {
+    pub loss: f64,
+    pub rgb_mse: f64,
+    pub depth: f64,
+    pub normal: f64,
+    pub sky: f64,
+    pub interlevel: f64,
+    pub distortion: f64,
+}
+
+impl StepStats {
+    pub fn psnr(&self) -> f64 {
+        -10.0 * self.rgb_mse.max(1e-12).log10()
+    }
+}
+
+/// One sampling level of a batch.
+struct Level {
+    n: usize,
+    /// Edges in normalised spacing, R·(n + 1).
+    s: Vec<f32>,
+    /// Edges in ray distance, R·(n + 1).
+    t: Vec<f32>,
+    weights: Vec<f32>,
+    density: Vec<f32>,
+    eval: Option<DensityEval>,
+}
+
+fn edges_to_t(sp: &Spacing, s: &[f32]) -> Vec<f32> {
+    s.par_iter()
+        .with_min_len(1024)
+        .map(|&v| sp.to_t(v))
+        .collect()
+}
+
+fn mids(rays: &[TrainRay], t: &[f32], n: usize) -> Vec<[f32; 3]> {
+    rays.par_iter()
+        .enumerate()
+        .with_min_len(64)
+        .flat_map_iter(|(r, ray)| {
+            let te = &t[r * (n + 1)..(r + 1) * (n + 1)];
+            (0..n).map(move |i| {
+                let m = 0.5 * (te[i] + te[i + 1]);
+                [0, 1, 2].map(|k| ray.origin[k] + ray.dir[k] * m)
+            })
+        })
+        .collect()
+}
+
+/// The proposal levels and the final level's edges (normalised s, distance t).
+type Proposed = (Vec<Level>, Vec<f32>, Vec<f32>);
+
+/// Runs the proposal levels: initial bins, each proposal field, resampling; returns the proposal levels
+/// and the final level's edges (s, t).
+fn propose(
+    cfg: &ModelConfig,
+    params: &Params,
+    rays: &[TrainRay],
+    jitter: Option<&[f32]>,
+    anneal: f32,
+    keep: bool,
+) -> Result<Proposed, GpuError> {
+    let sc = &cfg.sampler;
+    let sp = Spacing::new(sc.near, sc.far);
+    let nl = sc.proposal_samples.len() + 1;
+    let r = rays.len();
+    let jit = |ray: usize, level: usize| jitter.map(|j| j[ray * nl + level]);
+    let n0 = sc.proposal_samples[0];
+    let mut s = vec![0.0f32; r * (n0 + 1)];
+    s.par_chunks_mut(n0 + 1)
+        .enumerate()
+        .for_each(|(ray, e)| sampler::initial_edges(jit(ray, 0), e));
+    let mut levels: Vec<Level> = Vec::new();
+    let mut n = n0;
+    for l in 0..sc.proposal_samples.len() {
+        let t = edges_to_t(&sp, &s);
+        let pos = mids(rays, &t, n);
+        let unit = pos.iter().map(|&p| contract_unit(p)).collect();
+        let ev = density_forward_unit_cpu(
+            &cfg.proposals[l].grid,
+            &cfg.proposal_mlp(l),
+            &params.tensors[PROPOSAL + 2 * l],
+            &params.tensors[PROPOSAL + 2 * l + 1],
+            unit,
+        )?;
+        let density: Vec<f32> = (0..r * n).map(|i| density_of(ev.logit(i)).0).collect();
+        let mut weights = vec![0.0f32; r * n];
+        weights.par_chunks_mut(n).enumerate().for_each(|(ray, w)| {
+            let te = &t[ray * (n + 1)..(ray + 1) * (n + 1)];
+            sampler::weights(&density[ray * n..(ray + 1) * n], te, w)
+        });
+        let next_n = if l + 1 < sc.proposal_samples.len() {
+            sc.proposal_samples[l + 1]
+        } else {
+            sc.samples
+        };
+        let mut next = vec![0.0f32; r * (next_n + 1)];
+        next.par_chunks_mut(next_n + 1)
+            .enumerate()
+            .for_each(|(ray, out)| {
+                let mut cdf = vec![0.0f32; n + 1];
+                sampler::pdf_resample(
+                    &s[ray * (n + 1)..(ray + 1) * (n + 1)],
+                    &weights[ray * n..(ray + 1) * n],
+                    anneal,
+                    sc.histogram_padding,
+                    jit(ray, l + 1),
+                    &mut cdf,
+                    out,
+                )
+            });
+        levels.push(Level {
+            n,
+            s,
+            t,
+            weights,
+            density,
+            eval: keep.then_some(ev),
+        });
+        s = next;
+        n = next_n;
+    }
+    let t = edges_to_t(&sp, &s);
+    Ok((levels, s, t))
+}
+
+/// The radiance field at the final samples: densities, colours, and (for the first `normal_rays` rays)
+/// FD normals, with what the backward needs.
+struct Shaded {
+    eval: DensityEval,
+    colour_in: Vec<f32>,
+    colour: mlp::MlpForward,
+    samples: Vec<Sample>,
+    normals: Option<Vec<[f32; 3]>>,
+    /// |∇logit| per normal sample.
+    grad_len: Vec<f32>,
+}
+
+fn appearance_row<'a>(cfg: &ModelConfig, params: &'a Params, mean: &'a [f32], a: u32) -> &'a [f32] {
+    let d = cfg.field.appearance_dim;
+    let table = &params.tensors[APPEARANCE];
+    let a = a as usize;
+    if a < cfg.images && (a + 1) * d <= table.len() {
+        &table[a * d..(a + 1) * d]
+    } else {
+        mean
+    }
+}
+
+fn shade(
+    cfg: &ModelConfig,
+    params: &Params,
+    rays: &[TrainRay],
+    t: &[f32],
+    normal_rays: usize,
+) -> Result<Shaded, GpuError> {
+    let n = cfg.sampler.samples;
+    let r = rays.len();
+    let pos = mids(rays, t, n);
+    let mut unit: Vec<[f32; 3]> = pos.par_iter().map(|&p| contract_unit(p)).collect();
+    let h = cfg.normal_step;
+    let nm = normal_rays * n;
+    for i in 0..nm {
+        unit.extend_from_slice(&fd_positions(unit[i], h));
+    }
+    let d_cfg = cfg.density_mlp();
+    let eval = density_forward_unit_cpu(
+        &cfg.field.grid,
+        &d_cfg,
+        &params.tensors[GRID],
+        &params.tensors[DENSITY],
+        unit,
+    )?;
+    let c_cfg = cfg.colour_mlp();
+    let ci = c_cfg.input;
+    let geo = cfg.field.geo_features;
+    let mean = params.mean_appearance(cfg);
+    let mut colour_in = vec![0.0f32; r * n * ci];
+    colour_in
+        .par_chunks_mut(ci)
+        .enumerate()
+        .with_min_len(256)
+        .for_each(|(i, row)| {
+            let ray = &rays[i / n];
+            let out = &eval.mlp.output[i * eval.out_dim..(i + 1) * eval.out_dim];
+            let app = appearance_row(cfg, params, &mean, ray.appearance);
+            colour_input(ray.dir, &out[1..1 + geo], app, row);
+        });
+    let colour = mlp::forward_fast(&c_cfg, &params.tensors[COLOUR], &colour_in)?;
+    let samples = (0..r * n)
+        .map(|i| Sample {
+            rgb: [0, 1, 2].map(|c| colour.output[i * 3 + c]),
+            density: density_of(eval.logit(i)).0,
+        })
+        .collect();
+    let (normals, grad_len) = if normal_rays > 0 {
+        let mut nv = vec![[0.0f32; 3]; r * n];
+        let mut lens = vec![0.0f32; nm];
+        for i in 0..nm {
+            let base = r * n + 6 * i;
+            let l = [0, 1, 2, 3, 4, 5].map(|k| eval.logit(base + k));
+            let (nn, len) = fd_normal(l, h);
+            nv[i] = nn;
+            lens[i] = len;
+        }
+        (Some(nv), lens)
+    } else {
+        (None, Vec::new())
+    };
+    Ok(Shaded {
+        eval,
+        colour_in,
+        colour,
+        samples,
+        normals,
+        grad_len,
+    })
+}
+
+fn intervals(t: &[f32], r: usize, n: usize) -> Vec<Interval> {
+    let mut out = Vec::with_capacity(r * n);
+    for ray in 0..r {
+        let te = &t[ray * (n + 1)..(ray + 1) * (n + 1)];
+        for i in 0..n {
+            out.push(Interval {
+                start: te[i],
+                end: te[i + 1],
+            });
+        }
+    }
+    out
+}
+
+/// Gradients of the loss with respect to every parameter tensor, and the batch's loss terms.
+pub fn train_step(
+    cfg: &ModelConfig,
+    params: &Params,
+    batch: &Batch,
+    sch: &StepSchedule,
+) -> Result<(Vec<Vec<f32>>, StepStats), GpuError> {
+    let r = batch.rays.len();
+    let nl = cfg.sampler.proposal_samples.len() + 1;
+    if r == 0 || batch.targets.len() != r || batch.jitter.len() != r * nl {
+        return Err(GpuError::InvalidInput(format!(
+            "training batch: {r} rays, {} targets, {} jitters (need {})",
+            batch.targets.len(),
+            batch.jitter.len(),
+            r * nl
+        )));
+    }
+    let normal_rays = if sch.normals { batch.normal_rays } else { 0 };
+    let (levels, s_final, t_final) = propose(
+        cfg,
+        params,
+        &batch.rays,
+        Some(&batch.jitter),
+        sch.anneal,
+        true,
+    )?;
+    let n = cfg.sampler.samples;
+    let sh = shade(cfg, params, &batch.rays, &t_final, normal_rays)?;
+    let ivs = intervals(&t_final, r, n);
+    let rb = RayBatch {
+        samples_per_ray: n,
+        samples: &sh.samples,
+        intervals: &ivs,
+        normals: sh.normals.as_deref(),
+    };
+    let rg = render::backward_cpu(&rb, Background::LastSample, &batch.targets, &sch.losses)?;
+    let mut stats = StepStats {
+        rgb_mse: rg.losses.rgb,
+        depth: rg.losses.depth,
+        normal: rg.losses.normal,
+        sky: rg.losses.sky,
+        loss: rg.losses.total,
+        ..Default::default()
+    };
+
+    // Final weights (held fixed by the interlevel loss; the distortion loss trains through them).
+    let density: Vec<f32> = sh.samples.iter().map(|s| s.density).collect();
+    let mut w_final = vec![0.0f32; r * n];
+    w_final.par_chunks_mut(n).enumerate().for_each(|(ray, w)| {
+        sampler::weights(
+            &density[ray * n..(ray + 1) * n],
+            &t_final[ray * (n + 1)..(ray + 1) * (n + 1)],
+            w,
+        )
+    });
+    let mut d_density: Vec<f32> = rg.samples.iter().map(|s| s.density).collect();
+    let dist_scale = sch.distortion / r as f32;
+    let dist: f64 = d_density
+        .par_chunks_mut(n)
+        .enumerate()
+        .map(|(ray, dd)| {
+            let s = &s_final[ray * (n + 1)..(ray + 1) * (n + 1)];
+            let w = &w_final[ray * n..(ray + 1) * n];
+            let mut dw = vec![0.0f32; n];
+            let l = sampler::distortion(s, w, dist_scale, Some(&mut dw));
+            sampler::weights_backward(
+                &density[ray * n..(ray + 1) * n],
+                &t_final[ray * (n + 1)..(ray + 1) * (n + 1)],
+                &dw,
+                dd,
+            );
+            l as f64
+        })
+        .sum();
+    stats.distortion = dist / r as f64;
+    stats.loss += sch.distortion as f64 * stats.distortion;
+
+    // Radiance field backward: colour MLP → geometry features + appearance; density MLP → grid.
+    let c_cfg = cfg.colour_mlp();
+    let d_rgb: Vec<f32> = rg.samples.iter().flat_map(|s| s.rgb).collect();
+    let cg = mlp::backward_fast(
+        &c_cfg,
+        &params.tensors[COLOUR],
+        &sh.colour_in,
+        &sh.colour.saved,
+        &d_rgb,
+        true,
+    )?;
+    let d_cin = cg.input.expect("requested");
+    let geo = cfg.field.geo_features;
+    let od = sh.eval.out_dim;
+    let rows = sh.eval.unit.len();
+    let mut d_out = vec![0.0f32; rows * od];
+    for i in 0..r * n {
+        let dl = d_density[i] * density_of(sh.eval.logit(i)).1;
+        d_out[i * od] = dl;
+        d_out[i * od + 1..i * od + 1 + geo]
+            .copy_from_slice(&d_cin[i * c_cfg.input + 16..i * c_cfg.input + 16 + geo]);
+    }
+    if let Some(dn) = &rg.normals {
+        let nv = sh.normals.as_ref().expect("normals were rendered");
+        for i in 0..normal_rays * n {
+            let dl = fd_normal_backward(nv[i], sh.grad_len[i], cfg.normal_step, dn[i]);
+            for (k, v) in dl.iter().enumerate() {
+                d_out[(r * n + 6 * i + k) * od] += v;
+            }
+        }
+    }
+    let (g_grid, g_density) = density_backward_cpu(
+        &cfg.field.grid,
+        &cfg.density_mlp(),
+        &params.tensors[GRID],
+        &params.tensors[DENSITY],
+        &sh.eval,
+        &d_out,
+    )?;
+    let ad = cfg.field.appearance_dim;
+    let mut g_app = vec![0.0f32; params.tensors[APPEARANCE].len()];
+    if ad > 0 {
+        for i in 0..r * n {
+            let a = batch.rays[i / n].appearance as usize;
+            if a < cfg.images {
+                let src = &d_cin[i * c_cfg.input + 16 + geo..(i + 1) * c_cfg.input];
+                for (g, v) in g_app[a * ad..(a + 1) * ad].iter_mut().zip(src) {
+                    *g += v;
+                }
+            }
+        }
+    }
+    let mut grads = vec![g_grid, g_density, cg.params, g_app];
+
+    // Proposal levels: interlevel (against the fixed final weights) + depth / sky on their weights.
+    let inv2 = sch.losses.inv_two_var();
+    let il_scale = sch.interlevel / (r * n) as f32;
+    let (pd, ps) = (sch.proposal_depth / r as f32, sch.proposal_sky / r as f32);
+    for (l, lv) in levels.iter().enumerate() {
+        let m = lv.n;
+        let mut d_dens = vec![0.0f32; r * m];
+        let sums: (f64, f64, f64) = d_dens
+            .par_chunks_mut(m)
+            .enumerate()
+            .map(|(ray, dd)| {
+                let wp = &lv.weights[ray * m..(ray + 1) * m];
+                let tp = &lv.t[ray * (m + 1)..(ray + 1) * (m + 1)];
+                let mut dw = vec![0.0f32; m];
+                let mut cum = vec![0.0f32; m + 1];
+                let il = sampler::interlevel(
+                    &s_final[ray * (n + 1)..(ray + 1) * (n + 1)],
+                    &w_final[ray * n..(ray + 1) * n],
+                    &lv.s[ray * (m + 1)..(ray + 1) * (m + 1)],
+                    wp,
+                    il_scale,
+                    Some(&mut dw),
+                    &mut cum,
+                );
+                let (ld, ls) =
+                    render::weight_losses(wp, tp, &batch.targets[ray], inv2, pd, ps, &mut dw);
+                sampler::weights_backward(&lv.density[ray * m..(ray + 1) * m], tp, &dw, dd);
+                (il as f64, ld as f64, ls as f64)
+            })
+            .reduce(|| (0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
+        let il = sums.0 / (r * n) as f64;
+        stats.interlevel += il;
+        stats.loss += sch.interlevel as f64 * il
+            + sch.proposal_depth as f64 * sums.1 / r as f64
+            + sch.proposal_sky as f64 * sums.2 / r as f64;
+        let ev = lv.eval.as_ref().expect("kept");
+        let d_out: Vec<f32> = (0..r * m)
+            .map(|i| d_dens[i] * density_of(ev.logit(i)).1)
+            .collect();
+        let (gg, gm) = density_backward_cpu(
+            &cfg.proposals[l].grid,
+            &cfg.proposal_mlp(l),
+            &params.tensors[PROPOSAL + 2 * l],
+            &params.tensors[PROPOSAL + 2 * l + 1],
+            ev,
+            &d_out,
+        )?;
+        grads.push(gg);
+        grads.push(gm);
+    }
+    if !stats.loss.is_finite() {
+        return Err(GpuError::InvalidInput(format!(
+            "training step {}: the loss became non-finite ({stats:?})",
+            sch.step
+        )));
+    }
+    Ok((grads, stats))
+}
+
+/// One rendered ray: the renderer's outputs plus SiLVR's expected depth (Σwt / Σw clipped to the
+/// sampled range).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RenderedRay {
+    pub out: RayOutput,
+    pub expected_depth: f32,
+}
+
+/// SiLVR's expected depth Σwt / Σw, clipped to the ray's sampled range `t_edges` (far end without weight).
+pub fn expected_depth(o: &RayOutput, t_edges: &[f32]) -> f32 {
+    let (near, far) = (t_edges[0], t_edges[t_edges.len() - 1]);
+    if o.accumulation > 0.0 {
+        (o.depth / o.accumulation).clamp(near, far)
+    } else {
+        far
+    }
+}
+
+/// Renders rays (no jitter, fully annealed proposals) in chunks of `chunk`; normals on request.
+pub fn render_rays(
+    cfg: &ModelConfig,
+    params: &Params,
+    rays: &[TrainRay],
+    normals: bool,
+    chunk: usize,
+) -> Result<Vec<RenderedRay>, GpuError> {
+    let n = cfg.sampler.samples;
+    let mut out = Vec::with_capacity(rays.len());
+    for part in rays.chunks(chunk.max(1)) {
+        let r = part.len();
+        let (_, _, t) = propose(cfg, params, part, None, 1.0, false)?;
+        let sh = shade(cfg, params, part, &t, if normals { r } else { 0 })?;
+        let ivs = intervals(&t, r, n);
+        let rb = RayBatch {
+            samples_per_ray: n,
+            samples: &sh.samples,
+            intervals: &ivs,
+            normals: sh.normals.as_deref(),
+        };
+        let rendered = render::render_cpu(&rb, Background::LastSample)?;
+        for (ray, o) in rendered.rays.into_iter().enumerate() {
+            let te = &t[ray * (n + 1)..(ray + 1) * (n + 1)];
+            out.push(RenderedRay {
+                out: o,
+                expected_depth: expected_depth(&o, te),
+            });
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::hashgrid::HashGridConfig;
+    use rand::{Rng, SeedableRng};
+
+    fn tiny() -> ModelConfig {
+        let mut m = ModelConfig::nerfacto(3);
+        m.field.grid = HashGridConfig {
+            levels: 4,
+            features_per_level: 2,
+            log2_table_size: 10,
+            base_resolution: 4,
+            finest_resolution: 64,
+        };
+        m.field.density_hidden = 16;
+        m.field.colour_hidden = 16;
+        m.field.appearance_dim = 4;
+        m.sampler.proposal_samples = vec![16, 12];
+        m.sampler.samples = 8;
+        for p in &mut m.proposals {
+            p.grid.log2_table_size = 8;
+        }
+        m
+    }
+
+    /// The whole step's analytic gradient for the radiance field's tensors (grid, density MLP, colour MLP,
+    /// appearance) against central differences of the step's loss. The interlevel term is off: nerfacto
+    /// stops its gradient into the final weights, which differences would see.
+    #[test]
+    fn step_gradient_matches_finite_differences() {
+        let cfg = tiny();
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(5);
+        let mut params = Params::init(&cfg, 9).unwrap();
+        // Larger than the init so densities and colours vary along the rays.
+        for t in &mut params.tensors {
+            for v in t.iter_mut() {
+                *v += rng.random_range(-0.3..0.3f32);
+            }
+        }
+        let r = 6;
+        let rays: Vec<TrainRay> = (0..r)
+            .map(|i| {
+                let d = [
+                    rng.random_range(-1.0..1.0f32),
+                    rng.random_range(-1.0..1.0),
+                    1.0,
+                ];
+                let l = (d[0] * d[0] + d[1] * d[1] + 1.0).sqrt();
+                TrainRay {
+                    origin: [
+                        rng.random_range(-0.3..0.3),
+                        rng.random_range(-0.3..0.3),
+                        -0.5,
+                    ],
+                    dir: d.map(|v| v / l),
+                    appearance: (i % 3) as u32,
+                }
+            })
+            .collect();
+        let targets: Vec<RayTarget> = (0..r)
+            .map(|i| RayTarget {
+                rgb: [rng.random(), rng.random(), rng.random()],
+                depth: if i < 4 {
+                    rng.random_range(0.5..1.5)
+                } else {
+                    0.0
+                },
+                normal: if i < 2 { [0.2, -0.3, -1.0] } else { [0.0; 3] },
+                sky: (i == 5) as u32,
+            })
+            .collect();
+        let batch = Batch {
+            rays,
+            targets,
+            jitter: (0..r * 3).map(|_| rng.random()).collect(),
+            normal_rays: 2,
+        };
+        let sch = StepSchedule {
+            step: 0,
+            anneal: 1.0,
+            losses: LossConfig {
+                rgb: 1.0,
+                depth: 0.5,
+                normal: 0.1,
+                sky: 0.5,
+                depth_sigma: 0.3,
+            },
+            proposal_depth: 0.0,
+            proposal_sky: 0.0,
+            interlevel: 0.0,
+            distortion: 0.01,
+            normals: true,
+        };
+        let (grads, _) = train_step(&cfg, &params, &batch, &sch).unwrap();
+        let loss = |p: &Params| train_step(&cfg, p, &batch, &sch).unwrap().1.loss;
+        for tensor in [GRID, DENSITY, COLOUR, APPEARANCE] {
+            // The entries with the largest gradients (the rest are below f32 differencing noise); a
+            // small step because ReLU kinks and the hash cells are only piecewise smooth.
+            let mut idx: Vec<usize> = (0..grads[tensor].len()).collect();
+            idx.sort_by(|&a, &b| grads[tensor][b].abs().total_cmp(&grads[tensor][a].abs()));
+            for &i in &idx[..4] {
+                let h = 3e-4f32;
+                let mut p = params.clone();
+                p.tensors[tensor][i] += h;
+                let up = loss(&p);
+                p.tensors[tensor][i] -= 2.0 * h;
+                let down = loss(&p);
+                let fd = (up - down) / (2.0 * h as f64);
+                let an = grads[tensor][i] as f64;
+                assert!(
+                    (fd - an).abs() <= 0.05 * an.abs().max(fd.abs()) + 5e-4,
+                    "{} [{i}]: analytic {an} vs differences {fd}",
+                    params.names[tensor]
+                );
+            }
+        }
+    }
+}

@@ -1,0 +1,446 @@
+//! Training data: the images of a dataset (nerfstudio `transforms.json`, with our lidar depth / normal /
+//! sky images when present), their cameras as per-pixel ray-direction tables, and the scene normalisation.
+//!
+//! Scene frame: nerfstudio's centring and scaling without its rotation: p_scene = s·(p − c) with c the mean
+//! camera position and s = 1 / max‖cᵢ − c‖∞, so the cameras fill [−1, 1]³ and everything farther lives in
+//! the contracted shell. Distances along unit rays are therefore metres × s.
+
+use std::path::{Path, PathBuf};
+
+use glam::{DMat3, DVec2, DVec3};
+use rayon::prelude::*;
+use serde_json::Value;
+
+use crate::camera::CameraModel;
+use crate::dataset::{self, NsFrame};
+use crate::geometry::Se3;
+use crate::lidar::images::{NO_NORMAL, SKY_DEPTH};
+use crate::render::RayTarget;
+
+/// Why a dataset could not be loaded, naming the file.
+#[derive(Debug, thiserror::Error)]
+pub enum DataError {
+    #[error("{path}: {msg}")]
+    Bad { path: PathBuf, msg: String },
+    #[error(transparent)]
+    Dataset(#[from] dataset::DatasetError),
+}
+
+fn bad(path: &Path, msg: impl Into<String>) -> DataError {
+    DataError::Bad {
+        path: path.to_path_buf(),
+        msg: msg.into(),
+    }
+}
+
+/// Centre and scale of the scene frame.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SceneFrame {
+    pub center: [f64; 3],
+    pub scale: f64,
+}
+
+impl SceneFrame {
+    pub fn to_scene(&self, p: DVec3) -> DVec3 {
+        (p - DVec3::from(self.center)) * self.scale
+    }
+
+    pub fn to_metric(&self, p: DVec3) -> DVec3 {
+        p / self.scale + DVec3::from(self.center)
+    }
+}
+
+/// One image with its camera, pose and lidar supervision.
+pub struct Image {
+    pub name: String,
+    pub width: u32,
+    pub height: u32,
+    /// Index into [`TrainData::directions`] (images with identical intrinsics share one table).
+    pub camera: usize,
+    /// Camera-to-scene rotation (OpenCV axes) and centre in the scene frame.
+    pub rotation: DMat3,
+    pub origin: DVec3,
+    pub rgb: Vec<[u8; 3]>,
+    /// Lidar depth PNG values (range × 256, 0 none, 65535 sky); empty without lidar.
+    pub depth: Vec<u16>,
+    /// Lidar normal PNG values (camera frame, 128-grey none); empty without normals.
+    pub normals: Vec<[u8; 3]>,
+    /// Sky mask (non-zero = sky); empty without one.
+    pub sky: Vec<u8>,
+    /// Row of the appearance table, or `None` for held-out images (they use the mean embedding).
+    pub appearance: Option<u32>,
+}
+
+/// A loaded dataset.
+pub struct TrainData {
+    pub root: PathBuf,
+    pub frame: SceneFrame,
+    pub images: Vec<Image>,
+    /// Per distinct camera model: unit ray directions in the camera frame, row-major, NaN where the
+    /// pixel has no ray (outside a fisheye's valid angle).
+    pub directions: Vec<Vec<[f32; 3]>>,
+    pub cameras: Vec<CameraModel>,
+    pub train: Vec<usize>,
+    pub val: Vec<usize>,
+    /// Frames listed but skipped, with why (missing image files, for instance).
+    pub skipped: Vec<String>,
+}
+
+/// Options for [`TrainData::load`].
+#[derive(Clone, Debug, Default)]
+pub struct LoadOptions {
+    /// Integer downscale of every image (1 = full size).
+    pub downscale: u32,
+    /// Ignore lidar depth / normal / sky images (vision-only training loads faster).
+    pub skip_lidar: bool,
+}
+
+/// Frames, training file names, validation file names (the lists empty when the file has none).
+pub type FrameList = (Vec<NsFrame>, Vec<String>, Vec<String>);
+
+/// Reads a transforms.json, filling per-frame intrinsics from the top level when a frame lacks them
+/// (instant-ngp / nerfstudio single-camera files) and accepting w/h written as floats.
+pub fn read_frames(path: &Path) -> Result<FrameList, DataError> {
+    let text = std::fs::read_to_string(path).map_err(|e| bad(path, e.to_string()))?;
+    let root: Value =
+        serde_json::from_str(&text).map_err(|e| bad(path, format!("not JSON: {e}")))?;
+    let frames = root
+        .get("frames")
+        .and_then(Value::as_array)
+        .ok_or_else(|| bad(path, "no \"frames\" array"))?;
+    let shared = [
+        "fl_x",
+        "fl_y",
+        "cx",
+        "cy",
+        "w",
+        "h",
+        "camera_model",
+        "k1",
+        "k2",
+        "k3",
+        "k4",
+        "p1",
+        "p2",
+    ];
+    let mut out = Vec::with_capacity(frames.len());
+    for (i, f) in frames.iter().enumerate() {
+        let mut f = f.clone();
+        let obj = f
+            .as_object_mut()
+            .ok_or_else(|| bad(path, format!("frame {i} is not an object")))?;
+        for k in shared {
+            if !obj.contains_key(k) {
+                if let Some(v) = root.get(k) {
+                    obj.insert(k.into(), v.clone());
+                }
+            }
+        }
+        obj.entry("camera_model")
+            .or_insert_with(|| Value::from("OPENCV"));
+        for k in ["w", "h"] {
+            if let Some(v) = obj.get(k).and_then(Value::as_f64) {
+                obj.insert(k.into(), Value::from(v.round() as u64));
+            }
+        }
+        let frame: NsFrame =
+            serde_json::from_value(f).map_err(|e| bad(path, format!("frame {i}: {e}")))?;
+        out.push(frame);
+    }
+    let list = |k: &str| -> Vec<String> {
+        root.get(k)
+            .and_then(Value::as_array)
+            .map(|a| {
+                a.iter()
+                    .filter_map(|v| v.as_str().map(String::from))
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    Ok((out, list("train_filenames"), list("val_filenames")))
+}
+
+fn resize_rgb(px: Vec<[u8; 3]>, w: u32, h: u32, f: u32) -> Vec<[u8; 3]> {
+    if f <= 1 {
+        return px;
+    }
+    let (nw, nh) = (w / f, h / f);
+    let mut out = Vec::with_capacity((nw * nh) as usize);
+    for y in 0..nh {
+        for x in 0..nw {
+            let mut acc = [0u32; 3];
+            for dy in 0..f {
+                for dx in 0..f {
+                    let p = px[((y * f + dy) * w + x * f + dx) as usize];
+                    for c in 0..3 {
+                        acc[c] += p[c] as u32;
+                    }
+                }
+            }
+            let n = f * f;
+            out.push(acc.map(|v| ((v + n / 2) / n) as u8));
+        }
+    }
+    out
+}
+
+/// Nearest-neighbour downscale (depth, normals, masks must not be averaged across edges).
+fn resize_nearest<T: Copy>(px: Vec<T>, w: u32, h: u32, f: u32) -> Vec<T> {
+    if f <= 1 || px.is_empty() {
+        return px;
+    }
+    let (nw, nh) = (w / f, h / f);
+    let mut out = Vec::with_capacity((nw * nh) as usize);
+    for y in 0..nh {
+        for x in 0..nw {
+            out.push(px[((y * f + f / 2) * w + x * f + f / 2) as usize]);
+        }
+    }
+    out
+}
+
+impl TrainData {
+    /// Loads `dataset` (a folder holding transforms.json, or the JSON itself).
+    pub fn load(dataset: &Path, opts: &LoadOptions) -> Result<TrainData, DataError> {
+        let json = if dataset.is_dir() {
+            dataset.join("transforms.json")
+        } else {
+            dataset.to_path_buf()
+        };
+        let root = json.parent().unwrap_or(Path::new(".")).to_path_buf();
+        let (frames, train_names, val_names) = read_frames(&json)?;
+        if frames.is_empty() {
+            return Err(bad(&json, "no frames"));
+        }
+        let f = opts.downscale.max(1);
+        let mut skipped = Vec::new();
+        let mut kept = Vec::new();
+        for fr in frames {
+            if !root.join(&fr.file_path).is_file() {
+                skipped.push(format!("{}: image file missing", fr.file_path));
+                continue;
+            }
+            let (model, pose) = fr.camera(&json)?;
+            kept.push((fr, model, pose));
+        }
+        if kept.is_empty() {
+            return Err(bad(&json, "none of the frames' image files exist"));
+        }
+        // Scene frame from the camera centres.
+        let n = kept.len() as f64;
+        let center = kept.iter().fold(DVec3::ZERO, |a, (_, _, p)| a + p.trans) / n;
+        let extent = kept
+            .iter()
+            .map(|(_, _, p)| (p.trans - center).abs().max_element())
+            .fold(0.0f64, f64::max);
+        let scale = if extent > 1e-9 { 1.0 / extent } else { 1.0 };
+        let frame = SceneFrame {
+            center: center.to_array(),
+            scale,
+        };
+        // Split: the file's lists when given, else every 10th frame held out (nerfstudio's fraction 0.9).
+        let is_val = |i: usize, name: &str| {
+            if !val_names.is_empty() || !train_names.is_empty() {
+                val_names.iter().any(|v| v == name)
+            } else {
+                kept.len() >= 5 && i % 10 == 5
+            }
+        };
+        let mut cameras: Vec<CameraModel> = Vec::new();
+        let mut images = Vec::with_capacity(kept.len());
+        let mut train = Vec::new();
+        let mut val = Vec::new();
+        let loaded: Vec<Result<_, DataError>> = kept
+            .par_iter()
+            .map(|(fr, model, _)| load_pixels(&root, fr, model, f, opts.skip_lidar))
+            .collect();
+        for (i, ((fr, model, pose), px)) in kept.iter().zip(loaded).enumerate() {
+            let (rgb, depth, normals, sky, w, h) = px?;
+            let model = if f > 1 {
+                model.scaled(1.0 / f as f64)
+            } else {
+                *model
+            };
+            let camera = match cameras.iter().position(|c| *c == model) {
+                Some(c) => c,
+                None => {
+                    cameras.push(model);
+                    cameras.len() - 1
+                }
+            };
+            let held_out = is_val(i, &fr.file_path);
+            let appearance = if held_out {
+                val.push(i);
+                None
+            } else {
+                train.push(i);
+                Some(train.len() as u32 - 1)
+            };
+            images.push(Image {
+                name: fr.file_path.clone(),
+                width: w,
+                height: h,
+                camera,
+                rotation: DMat3::from_quat(pose.rot),
+                origin: frame.to_scene(pose.trans),
+                rgb,
+                depth,
+                normals,
+                sky,
+                appearance,
+            });
+        }
+        if train.is_empty() {
+            return Err(bad(&json, "every frame is held out; nothing to train on"));
+        }
+        let directions = cameras.par_iter().map(direction_table).collect();
+        Ok(TrainData {
+            root,
+            frame,
+            images,
+            directions,
+            cameras,
+            train,
+            val,
+            skipped,
+        })
+    }
+
+    /// Whether any training image has lidar depth.
+    pub fn has_lidar(&self) -> bool {
+        self.train.iter().any(|&i| !self.images[i].depth.is_empty())
+    }
+
+    /// The ray through pixel (x, y) of image `i` (scene frame, unit direction), or `None` where the
+    /// camera has no ray.
+    pub fn ray(&self, i: usize, x: u32, y: u32) -> Option<([f32; 3], [f32; 3])> {
+        let im = &self.images[i];
+        let d = self.directions[im.camera][(y * im.width + x) as usize];
+        if !d[0].is_finite() {
+            return None;
+        }
+        let dw = im.rotation * DVec3::new(d[0] as f64, d[1] as f64, d[2] as f64);
+        Some((im.origin.as_vec3().to_array(), dw.as_vec3().to_array()))
+    }
+
+    /// The supervision of pixel (x, y) of image `i`, depths in scene units.
+    pub fn target(&self, i: usize, x: u32, y: u32) -> RayTarget {
+        let im = &self.images[i];
+        let p = (y * im.width + x) as usize;
+        let c = im.rgb[p];
+        let mut t = RayTarget {
+            rgb: c.map(|v| v as f32 / 255.0),
+            ..Default::default()
+        };
+        if let Some(&d) = im.depth.get(p) {
+            if d == SKY_DEPTH {
+                t.sky = 1;
+            } else if d > 0 {
+                t.depth = (d as f64 / 256.0 * self.frame.scale) as f32;
+            }
+        }
+        if im.sky.get(p).is_some_and(|&s| s > 127) && t.depth <= 0.0 {
+            t.sky = 1;
+        }
+        if let Some(&n) = im.normals.get(p) {
+            if n != NO_NORMAL && t.depth > 0.0 {
+                let nc = DVec3::from(n.map(|v| v as f64 / 255.0 * 2.0 - 1.0));
+                if nc.length() > 0.5 {
+                    t.normal = (im.rotation * nc.normalize()).as_vec3().to_array();
+                }
+            }
+        }
+        t
+    }
+}
+
+type Pixels = (Vec<[u8; 3]>, Vec<u16>, Vec<[u8; 3]>, Vec<u8>, u32, u32);
+
+fn load_pixels(
+    root: &Path,
+    fr: &NsFrame,
+    model: &CameraModel,
+    f: u32,
+    skip_lidar: bool,
+) -> Result<Pixels, DataError> {
+    let path = root.join(&fr.file_path);
+    let img = image::open(&path)
+        .map_err(|e| bad(&path, format!("cannot read image: {e}")))?
+        .to_rgb8();
+    let (w, h) = img.dimensions();
+    if (w, h) != (model.width, model.height) {
+        return Err(bad(
+            &path,
+            format!(
+                "image is {w}x{h} but transforms.json says {}x{}",
+                model.width, model.height
+            ),
+        ));
+    }
+    if w / f < 8 || h / f < 8 {
+        return Err(bad(
+            &path,
+            format!("downscale {f} leaves too small an image"),
+        ));
+    }
+    let rgb: Vec<[u8; 3]> = img.pixels().map(|p| p.0).collect();
+    let check = |p: &Path, (iw, ih): (u32, u32)| {
+        if (iw, ih) != (w, h) {
+            Err(bad(p, format!("is {iw}x{ih}, its image is {w}x{h}")))
+        } else {
+            Ok(())
+        }
+    };
+    let (mut depth, mut normals, mut sky) = (Vec::new(), Vec::new(), Vec::new());
+    if !skip_lidar {
+        if let Some(rel) = &fr.depth_file_path {
+            let p = root.join(rel);
+            let (dw, dh, d) = dataset::read_png16(&p)?;
+            check(&p, (dw, dh))?;
+            depth = d;
+        }
+        if let Some(rel) = &fr.normal_file_path {
+            let p = root.join(rel);
+            let (nw, nh, n) = dataset::read_rgb(&p)?;
+            check(&p, (nw, nh))?;
+            normals = n;
+        }
+        if let Some(rel) = &fr.sky_mask_path {
+            let p = root.join(rel);
+            let (sw, sh, s) = dataset::read_gray8(&p)?;
+            check(&p, (sw, sh))?;
+            sky = s;
+        }
+    }
+    Ok((
+        resize_rgb(rgb, w, h, f),
+        resize_nearest(depth, w, h, f),
+        resize_nearest(normals, w, h, f),
+        resize_nearest(sky, w, h, f),
+        w / f.max(1),
+        h / f.max(1),
+    ))
+}
+
+/// Unit ray directions of every pixel centre (OpenCV convention), NaN where unprojection fails.
+pub fn direction_table(model: &CameraModel) -> Vec<[f32; 3]> {
+    let angle = model.valid_angle();
+    (0..model.height)
+        .into_par_iter()
+        .flat_map_iter(|y| {
+            (0..model.width).map(move |x| {
+                model
+                    .unproject_within(DVec2::new(x as f64, y as f64), angle)
+                    .map_or([f32::NAN; 3], |d| d.normalize().as_vec3().to_array())
+            })
+        })
+        .collect()
+}
+
+/// `Se3` of a camera in the scene frame, for renders of arbitrary views.
+pub fn scene_pose(frame: &SceneFrame, t_world_cam: &Se3) -> (DMat3, DVec3) {
+    (
+        DMat3::from_quat(t_world_cam.rot),
+        frame.to_scene(t_world_cam.trans),
+    )
+}

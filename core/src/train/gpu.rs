@@ -1,0 +1,968 @@
+//! The training step and the renderer in WGSL: the same chain as [`super::cpu`] (its referee), kernel for
+//! kernel, recorded into one command buffer per step with the parameters, gradients and Adam moments
+//! resident on the device. One small readback per step (per-ray loss terms); parameters come back only
+//! for checkpoints ([`GpuEngine::download`]). Nothing here blocks: the browser worker runs it as is.
+
+use bytemuck::{Pod, Zeroable};
+
+use super::adam::AdamConfig;
+use super::cpu::{Batch, RenderedRay, StepSchedule, StepStats, TrainRay};
+use crate::field::hashgrid::{self, GpuPositions, HashGridLayout};
+use crate::field::mlp::{self, BackwardBuffers, ForwardBuffers};
+use crate::field::model::{ModelConfig, Params, APPEARANCE, COLOUR, DENSITY, GRID, PROPOSAL};
+use crate::gpu::{Gpu, GpuError, Kernel};
+use crate::render::{self, Background, GpuRayBatch, Losses, RayLoss, RayOutput};
+use crate::sampler::Spacing;
+use crate::shaders;
+
+/// `shaders/train.wgsl`.
+pub const KERNEL: Kernel = Kernel {
+    name: "train",
+    source: shaders::TRAIN,
+    workgroup_size: 64,
+};
+
+/// The kernels' uniform (`Params` in train.wgsl), 32 words.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+struct Uniform {
+    count: u32,
+    n_rays: u32,
+    n_in: u32,
+    n_out: u32,
+    n_levels: u32,
+    level: u32,
+    use_jitter: u32,
+    out_dim: u32,
+    geo: u32,
+    app_dim: u32,
+    images: u32,
+    c_in: u32,
+    normal_rays: u32,
+    scratch_stride: u32,
+    stat_col: u32,
+    stat_stride: u32,
+    g_near: f32,
+    g_span: f32,
+    anneal: f32,
+    padding: f32,
+    normal_step: f32,
+    scale_a: f32,
+    scale_b: f32,
+    scale_c: f32,
+    inv_two_var: f32,
+    adam_a: f32,
+    adam_c: f32,
+    beta1: f32,
+    beta2: f32,
+    eps: f32,
+    _pad0: u32,
+    _pad1: u32,
+}
+
+/// One proposal level's batch buffers.
+struct LevelBufs {
+    n: usize,
+    s: wgpu::Buffer,
+    t: wgpu::Buffer,
+    pos: wgpu::Buffer,
+    features: wgpu::Buffer,
+    out: wgpu::Buffer,
+    saved: wgpu::Buffer,
+    weights: wgpu::Buffer,
+    density: wgpu::Buffer,
+    d_out: wgpu::Buffer,
+    d_features: wgpu::Buffer,
+    mlp_scratch: wgpu::Buffer,
+}
+
+/// Batch-sized buffers for up to `rays` rays of which up to `normal_rays` have normals.
+struct Work {
+    rays: usize,
+    normal_rays: usize,
+    b_rays: wgpu::Buffer,
+    targets: wgpu::Buffer,
+    jitter: wgpu::Buffer,
+    levels: Vec<LevelBufs>,
+    s: wgpu::Buffer,
+    t: wgpu::Buffer,
+    pos: wgpu::Buffer,
+    features: wgpu::Buffer,
+    out: wgpu::Buffer,
+    saved: wgpu::Buffer,
+    colour_in: wgpu::Buffer,
+    colour_out: wgpu::Buffer,
+    colour_saved: wgpu::Buffer,
+    samples: wgpu::Buffer,
+    intervals: wgpu::Buffer,
+    normals: wgpu::Buffer,
+    grad_len: wgpu::Buffer,
+    losses: wgpu::Buffer,
+    d_samples: wgpu::Buffer,
+    d_normals: wgpu::Buffer,
+    d_rgb: wgpu::Buffer,
+    d_cin: wgpu::Buffer,
+    colour_scratch: wgpu::Buffer,
+    d_out: wgpu::Buffer,
+    d_features: wgpu::Buffer,
+    density_scratch: wgpu::Buffer,
+    w_fin: wgpu::Buffer,
+    mean_app: wgpu::Buffer,
+    scratch: wgpu::Buffer,
+    ray_stats: wgpu::Buffer,
+    rays_out: wgpu::Buffer,
+}
+
+/// The WGSL engine: the model's tensors, their gradients and Adam moments on one device.
+pub struct GpuEngine {
+    pub gpu: Gpu,
+    cfg: ModelConfig,
+    sizes: Vec<usize>,
+    params: Vec<wgpu::Buffer>,
+    grads: Vec<wgpu::Buffer>,
+    m: Vec<wgpu::Buffer>,
+    v: Vec<wgpu::Buffer>,
+    work: Option<Work>,
+}
+
+/// Per-ray statistics columns: distortion, then (interlevel, depth, sky) per proposal level.
+fn stat_stride(cfg: &ModelConfig) -> usize {
+    1 + 3 * cfg.proposals.len()
+}
+
+fn scratch_stride(cfg: &ModelConfig) -> usize {
+    let max_n = cfg
+        .sampler
+        .proposal_samples
+        .iter()
+        .copied()
+        .chain([cfg.sampler.samples])
+        .max()
+        .unwrap_or(1);
+    2 * (max_n + 1)
+}
+
+fn u32_of(n: usize, what: &str) -> Result<u32, GpuError> {
+    u32::try_from(n)
+        .map_err(|_| GpuError::InvalidInput(format!("training: {n} {what} is too many")))
+}
+
+impl GpuEngine {
+    /// Uploads `params` and the Adam moments `m`, `v` (same shapes) to `gpu`.
+    pub fn new(
+        gpu: Gpu,
+        cfg: &ModelConfig,
+        params: &Params,
+        m: &[Vec<f32>],
+        v: &[Vec<f32>],
+    ) -> Result<Self, GpuError> {
+        params.check(cfg)?;
+        let sizes: Vec<usize> = params.tensors.iter().map(Vec::len).collect();
+        let mut e = GpuEngine {
+            gpu,
+            cfg: cfg.clone(),
+            sizes,
+            params: Vec::new(),
+            grads: Vec::new(),
+            m: Vec::new(),
+            v: Vec::new(),
+            work: None,
+        };
+        for (i, t) in params.tensors.iter().enumerate() {
+            let name = &params.names[i];
+            e.params.push(e.gpu.upload(name, t)?);
+            e.m.push(e.gpu.upload(&format!("{name}.m"), &m[i])?);
+            e.v.push(e.gpu.upload(&format!("{name}.v"), &v[i])?);
+            e.grads
+                .push(e.gpu.output(&format!("{name}.grad"), t.len())?);
+        }
+        Ok(e)
+    }
+
+    /// Parameters and Adam moments back on the host (for checkpoints and the CPU referee).
+    pub async fn download(
+        &self,
+    ) -> Result<(Vec<Vec<f32>>, Vec<Vec<f32>>, Vec<Vec<f32>>), GpuError> {
+        let mut reads = Vec::new();
+        for i in 0..self.sizes.len() {
+            reads.push((&self.params[i], self.sizes[i]));
+            reads.push((&self.m[i], self.sizes[i]));
+            reads.push((&self.v[i], self.sizes[i]));
+        }
+        let enc = self.gpu.encoder("download");
+        let out = self.gpu.finish_and_read::<f32>(enc, &reads).await?;
+        let (mut p, mut m, mut v) = (Vec::new(), Vec::new(), Vec::new());
+        for (k, t) in out.into_iter().enumerate() {
+            match k % 3 {
+                0 => p.push(t),
+                1 => m.push(t),
+                _ => v.push(t),
+            }
+        }
+        Ok((p, m, v))
+    }
+
+    /// The latest gradients (after [`Self::step`]), for the CPU-vs-GPU tests.
+    pub async fn download_grads(&self) -> Result<Vec<Vec<f32>>, GpuError> {
+        let reads: Vec<_> = self
+            .grads
+            .iter()
+            .zip(&self.sizes)
+            .map(|(b, &n)| (b, n))
+            .collect();
+        let enc = self.gpu.encoder("download grads");
+        self.gpu.finish_and_read::<f32>(enc, &reads).await
+    }
+
+    /// The most rays one batch may hold before a work buffer would pass the device's binding limit.
+    pub fn max_rays(&self, normals: bool) -> usize {
+        let c = &self.cfg;
+        let n = c.sampler.samples;
+        let dm = c.density_mlp();
+        let rows = n * if normals { 7 } else { 1 };
+        let mut per_ray = rows
+            * dm.saved_per_row()
+                .max(c.field.grid.output_dim())
+                .max(dm.output);
+        per_ray = per_ray.max(n * c.colour_mlp().saved_per_row().max(c.colour_mlp().input));
+        for (l, &nl) in c.sampler.proposal_samples.iter().enumerate() {
+            let pm = c.proposal_mlp(l);
+            per_ray = per_ray.max(nl * pm.saved_per_row().max(c.proposals[l].grid.output_dim()));
+        }
+        // MLP backward scratch grows with rows too; leave headroom.
+        let budget = self.gpu.max_binding_bytes() / 4 / 2;
+        (budget as usize / per_ray.max(1)).max(1)
+    }
+
+    fn ensure_work(&mut self, rays: usize, normal_rays: usize) -> Result<(), GpuError> {
+        if let Some(w) = &self.work {
+            if w.rays >= rays && w.normal_rays >= normal_rays {
+                return Ok(());
+            }
+        }
+        let rays = rays.max(self.work.as_ref().map_or(0, |w| w.rays)).max(1);
+        let nm = normal_rays.max(self.work.as_ref().map_or(0, |w| w.normal_rays));
+        let g = &self.gpu;
+        let c = &self.cfg;
+        let nl = c.proposals.len() + 1;
+        let mut levels = Vec::new();
+        for (l, &n) in c.sampler.proposal_samples.iter().enumerate() {
+            let f = c.proposals[l].grid.output_dim();
+            let m = c.proposal_mlp(l);
+            let rows = rays * n;
+            levels.push(LevelBufs {
+                n,
+                s: g.output("level s", rays * (n + 1))?,
+                t: g.output("level t", rays * (n + 1))?,
+                pos: g.output("level positions", rows * 3)?,
+                features: g.output("level features", rows * f)?,
+                out: g.output("level logits", rows)?,
+                saved: g.output("level saved", rows * m.saved_per_row())?,
+                weights: g.output("level weights", rows)?,
+                density: g.output("level density", rows)?,
+                d_out: g.output("level dL/dlogit", rows)?,
+                d_features: g.output("level dL/dfeatures", rows * f)?,
+                mlp_scratch: g.output("level mlp scratch", m.scratch_words(rows))?,
+            });
+        }
+        let n = c.sampler.samples;
+        let rn = rays * n;
+        let rows = rn + 6 * nm * n;
+        let f = c.field.grid.output_dim();
+        let dm = c.density_mlp();
+        let cm = c.colour_mlp();
+        self.work = Some(Work {
+            rays,
+            normal_rays: nm,
+            b_rays: g.output("rays", rays * 8)?,
+            targets: g.output("targets", rays * 8)?,
+            jitter: g.output("jitter", rays * nl)?,
+            levels,
+            s: g.output("final s", rays * (n + 1))?,
+            t: g.output("final t", rays * (n + 1))?,
+            pos: g.output("final positions", rows * 3)?,
+            features: g.output("final features", rows * f)?,
+            out: g.output("density mlp out", rows * dm.output)?,
+            saved: g.output("density mlp saved", rows * dm.saved_per_row())?,
+            colour_in: g.output("colour input", rn * cm.input)?,
+            colour_out: g.output("colour out", rn * 3)?,
+            colour_saved: g.output("colour saved", rn * cm.saved_per_row())?,
+            samples: g.output("samples", rn * 4)?,
+            intervals: g.output("intervals", rn * 2)?,
+            normals: g.output("normals", rn * 3)?,
+            grad_len: g.output("grad len", nm * n)?,
+            losses: g.output("ray losses", rays * 4)?,
+            d_samples: g.output("dL/dsamples", rn * 4)?,
+            d_normals: g.output("dL/dnormals", rn * 3)?,
+            d_rgb: g.output("dL/drgb", rn * 3)?,
+            d_cin: g.output("dL/dcolour input", rn * cm.input)?,
+            colour_scratch: g.output("colour scratch", cm.scratch_words(rn))?,
+            d_out: g.output("dL/ddensity out", rows * dm.output)?,
+            d_features: g.output("dL/dfeatures", rows * f)?,
+            density_scratch: g.output("density scratch", dm.scratch_words(rows))?,
+            w_fin: g.output("final weights", rn)?,
+            mean_app: g.output("mean appearance", c.field.appearance_dim)?,
+            scratch: g.output("ray scratch", rays * scratch_stride(c))?,
+            ray_stats: g.output("ray stats", rays * stat_stride(c))?,
+            rays_out: g.output("rays out", rays * 8)?,
+        });
+        Ok(())
+    }
+
+    fn base_uniform(&self, rays: usize, normal_rays: usize) -> Uniform {
+        let c = &self.cfg;
+        let sp = Spacing::new(c.sampler.near, c.sampler.far);
+        Uniform {
+            n_rays: rays as u32,
+            n_levels: (c.proposals.len() + 1) as u32,
+            out_dim: c.density_mlp().output as u32,
+            geo: c.field.geo_features as u32,
+            app_dim: c.field.appearance_dim as u32,
+            images: c.images as u32,
+            c_in: c.colour_mlp().input as u32,
+            normal_rays: normal_rays as u32,
+            scratch_stride: scratch_stride(c) as u32,
+            stat_stride: stat_stride(c) as u32,
+            g_near: sp.g_near(),
+            g_span: sp.g_span(),
+            padding: c.sampler.histogram_padding,
+            normal_step: c.normal_step,
+            ..Default::default()
+        }
+    }
+
+    async fn run(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        entry: &str,
+        u: &Uniform,
+        bindings: &[(u32, &wgpu::Buffer)],
+    ) -> Result<(), GpuError> {
+        if u.count == 0 {
+            return Ok(());
+        }
+        let ub = self.gpu.uniform("train.params", u);
+        let mut all: Vec<(u32, &wgpu::Buffer)> = vec![(0, &ub)];
+        all.extend_from_slice(bindings);
+        self.gpu.dispatch(enc, &KERNEL, entry, &all, u.count).await
+    }
+
+    /// Uploads the rays (and targets, jitter) of a batch into the work buffers.
+    fn write_rays(&self, rays: &[TrainRay], jitter: Option<&[f32]>) {
+        let w = self.work.as_ref().expect("work buffers");
+        let packed: Vec<f32> = rays
+            .iter()
+            .flat_map(|r| {
+                [
+                    r.origin[0],
+                    r.origin[1],
+                    r.origin[2],
+                    r.dir[0],
+                    r.dir[1],
+                    r.dir[2],
+                    f32::from_bits(r.appearance),
+                    0.0,
+                ]
+            })
+            .collect();
+        self.gpu
+            .queue
+            .write_buffer(&w.b_rays, 0, bytemuck::cast_slice(&packed));
+        let nl = self.cfg.proposals.len() + 1;
+        let zeros;
+        let j = match jitter {
+            Some(j) => j,
+            None => {
+                zeros = vec![0.0f32; rays.len() * nl];
+                &zeros
+            }
+        };
+        self.gpu
+            .queue
+            .write_buffer(&w.jitter, 0, bytemuck::cast_slice(j));
+    }
+
+    /// Records the forward chain: proposal levels, final samples (+ FD normals for the first
+    /// `normal_rays` rays), the field, and the render inputs.
+    async fn record_forward(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        rays: usize,
+        normal_rays: usize,
+        jitter: bool,
+        anneal: f32,
+    ) -> Result<(), GpuError> {
+        let w = self.work.as_ref().expect("work buffers");
+        let c = &self.cfg;
+        let base = self.base_uniform(rays, normal_rays);
+        let r32 = u32_of(rays, "rays")?;
+        let n = c.sampler.samples;
+        // First level's edges.
+        let first = &w.levels[0];
+        let u = Uniform {
+            count: r32,
+            n_out: first.n as u32,
+            use_jitter: jitter as u32,
+            ..base
+        };
+        self.run(
+            enc,
+            "init_edges",
+            &u,
+            &[
+                (1, &w.b_rays),
+                (2, &w.jitter),
+                (6, &first.s),
+                (7, &first.t),
+                (8, &first.pos),
+            ],
+        )
+        .await?;
+        for (l, lv) in w.levels.iter().enumerate() {
+            let rows = u32_of(rays * lv.n, "samples")?;
+            let layout = HashGridLayout::new(&c.proposals[l].grid)?;
+            let pos = GpuPositions {
+                buffer: &lv.pos,
+                n: rows,
+            };
+            hashgrid::record_encode(
+                &self.gpu,
+                enc,
+                &layout,
+                &self.params[PROPOSAL + 2 * l],
+                pos,
+                &lv.features,
+            )
+            .await?;
+            mlp::record_forward(
+                &self.gpu,
+                enc,
+                &c.proposal_mlp(l),
+                rows,
+                &ForwardBuffers {
+                    params: &self.params[PROPOSAL + 2 * l + 1],
+                    input: &lv.features,
+                    output: &lv.out,
+                    saved: &lv.saved,
+                },
+            )
+            .await?;
+            let u = Uniform {
+                count: r32,
+                n_in: lv.n as u32,
+                out_dim: 1,
+                ..base
+            };
+            self.run(
+                enc,
+                "level_weights",
+                &u,
+                &[
+                    (4, &lv.t),
+                    (5, &lv.out),
+                    (9, &lv.weights),
+                    (10, &lv.density),
+                ],
+            )
+            .await?;
+            let (s_next, t_next, p_next, n_next) = match w.levels.get(l + 1) {
+                Some(nx) => (&nx.s, &nx.t, &nx.pos, nx.n),
+                None => (&w.s, &w.t, &w.pos, n),
+            };
+            let u = Uniform {
+                count: r32,
+                n_in: lv.n as u32,
+                n_out: n_next as u32,
+                level: (l + 1) as u32,
+                use_jitter: jitter as u32,
+                anneal,
+                ..base
+            };
+            self.run(
+                enc,
+                "resample",
+                &u,
+                &[
+                    (1, &w.b_rays),
+                    (2, &w.jitter),
+                    (3, &lv.s),
+                    (33, &lv.weights),
+                    (11, &w.scratch),
+                    (6, s_next),
+                    (7, t_next),
+                    (8, p_next),
+                ],
+            )
+            .await?;
+        }
+        let nm = normal_rays * n;
+        let u = Uniform {
+            count: u32_of(nm, "normal samples")?,
+            n_in: n as u32,
+            ..base
+        };
+        self.run(enc, "fd_positions", &u, &[(8, &w.pos)]).await?;
+        let rows = u32_of(rays * n + 6 * nm, "field rows")?;
+        let layout = HashGridLayout::new(&c.field.grid)?;
+        hashgrid::record_encode(
+            &self.gpu,
+            enc,
+            &layout,
+            &self.params[GRID],
+            GpuPositions {
+                buffer: &w.pos,
+                n: rows,
+            },
+            &w.features,
+        )
+        .await?;
+        mlp::record_forward(
+            &self.gpu,
+            enc,
+            &c.density_mlp(),
+            rows,
+            &ForwardBuffers {
+                params: &self.params[DENSITY],
+                input: &w.features,
+                output: &w.out,
+                saved: &w.saved,
+            },
+        )
+        .await?;
+        let ad = c.field.appearance_dim;
+        let u = Uniform {
+            count: ad as u32,
+            ..base
+        };
+        self.run(
+            enc,
+            "mean_appearance",
+            &u,
+            &[(18, &self.params[APPEARANCE]), (19, &w.mean_app)],
+        )
+        .await?;
+        let rn = u32_of(rays * n, "samples")?;
+        let u = Uniform {
+            count: rn,
+            n_in: n as u32,
+            ..base
+        };
+        self.run(
+            enc,
+            "colour_input",
+            &u,
+            &[
+                (1, &w.b_rays),
+                (5, &w.out),
+                (18, &self.params[APPEARANCE]),
+                (19, &w.mean_app),
+                (17, &w.colour_in),
+            ],
+        )
+        .await?;
+        mlp::record_forward(
+            &self.gpu,
+            enc,
+            &c.colour_mlp(),
+            rn,
+            &ForwardBuffers {
+                params: &self.params[COLOUR],
+                input: &w.colour_in,
+                output: &w.colour_out,
+                saved: &w.colour_saved,
+            },
+        )
+        .await?;
+        let bind = vec![
+            (12, &w.colour_out),
+            (5, &w.out),
+            (4, &w.t),
+            (13, &w.samples),
+            (14, &w.intervals),
+            (15, &w.normals),
+            (16, &w.grad_len),
+        ];
+        self.run(enc, "shade", &u, &bind).await
+    }
+
+    fn ray_batch<'a>(&self, w: &'a Work, rays: usize, normals: bool) -> GpuRayBatch<'a> {
+        GpuRayBatch {
+            rays: rays as u32,
+            samples_per_ray: self.cfg.sampler.samples as u32,
+            samples: &w.samples,
+            intervals: &w.intervals,
+            normals: normals.then_some(&w.normals),
+        }
+    }
+
+    /// One training step: forward, losses, backward, Adam (update `adam_t`, 1-based, at learning rate `lr`).
+    /// Returns the step's loss terms (read back after the update is queued).
+    pub async fn step(
+        &mut self,
+        batch: &Batch,
+        sch: &StepSchedule,
+        adam: &AdamConfig,
+        lr: f32,
+        adam_t: u32,
+        update: bool,
+    ) -> Result<StepStats, GpuError> {
+        let r = batch.rays.len();
+        let nl = self.cfg.proposals.len() + 1;
+        if r == 0 || batch.targets.len() != r || batch.jitter.len() != r * nl {
+            return Err(GpuError::InvalidInput(format!(
+                "training batch: {r} rays, {} targets, {} jitters (need {})",
+                batch.targets.len(),
+                batch.jitter.len(),
+                r * nl
+            )));
+        }
+        let nm = if sch.normals { batch.normal_rays } else { 0 };
+        self.ensure_work(r, nm)?;
+        self.write_rays(&batch.rays, Some(&batch.jitter));
+        let w = self.work.as_ref().expect("work buffers");
+        self.gpu
+            .queue
+            .write_buffer(&w.targets, 0, bytemuck::cast_slice(&batch.targets));
+        let mut enc = self.gpu.encoder("train step");
+        self.record_forward(&mut enc, r, nm, true, sch.anneal)
+            .await?;
+        let c = &self.cfg;
+        let n = c.sampler.samples;
+        let base = self.base_uniform(r, nm);
+        let r32 = r as u32;
+        render::record_render_backward(
+            &self.gpu,
+            &mut enc,
+            self.ray_batch(w, r, nm > 0),
+            Background::LastSample,
+            &sch.losses,
+            &w.targets,
+            &w.losses,
+            &w.d_samples,
+            (nm > 0).then_some(&w.d_normals),
+        )
+        .await?;
+        // Final level: weights, distortion, dL/dσ (in place) and dL/drgb.
+        let u = Uniform {
+            count: r32,
+            n_in: n as u32,
+            scale_a: sch.distortion / r as f32,
+            stat_col: 0,
+            ..base
+        };
+        self.run(
+            &mut enc,
+            "final_backward",
+            &u,
+            &[
+                (4, &w.t),
+                (26, &w.s),
+                (13, &w.samples),
+                (9, &w.w_fin),
+                (11, &w.scratch),
+                (20, &w.d_samples),
+                (24, &w.ray_stats),
+                (35, &w.d_rgb),
+            ],
+        )
+        .await?;
+        let cm = c.colour_mlp();
+        let rn = (r * n) as u32;
+        mlp::record_backward(
+            &self.gpu,
+            &mut enc,
+            &cm,
+            rn,
+            &BackwardBuffers {
+                params: &self.params[COLOUR],
+                input: &w.colour_in,
+                saved: &w.colour_saved,
+                d_output: &w.d_rgb,
+                scratch: &w.colour_scratch,
+                d_params: &self.grads[COLOUR],
+                d_input: Some(&w.d_cin),
+            },
+            false,
+        )
+        .await?;
+        let u = Uniform {
+            count: rn,
+            n_in: n as u32,
+            ..base
+        };
+        self.run(
+            &mut enc,
+            "assemble_d_out",
+            &u,
+            &[
+                (20, &w.d_samples),
+                (5, &w.out),
+                (22, &w.d_cin),
+                (15, &w.normals),
+                (21, &w.d_normals),
+                (16, &w.grad_len),
+                (23, &w.d_out),
+            ],
+        )
+        .await?;
+        let rows = (r * n + 6 * nm * n) as u32;
+        mlp::record_backward(
+            &self.gpu,
+            &mut enc,
+            &c.density_mlp(),
+            rows,
+            &BackwardBuffers {
+                params: &self.params[DENSITY],
+                input: &w.features,
+                saved: &w.saved,
+                d_output: &w.d_out,
+                scratch: &w.density_scratch,
+                d_params: &self.grads[DENSITY],
+                d_input: Some(&w.d_features),
+            },
+            false,
+        )
+        .await?;
+        hashgrid::record_backward_params(
+            &self.gpu,
+            &mut enc,
+            &HashGridLayout::new(&c.field.grid)?,
+            GpuPositions {
+                buffer: &w.pos,
+                n: rows,
+            },
+            &w.d_features,
+            &self.grads[GRID],
+            false,
+        )
+        .await?;
+        let ad = c.field.appearance_dim;
+        if self.sizes[APPEARANCE] > 0 {
+            let u = Uniform {
+                count: self.sizes[APPEARANCE] as u32,
+                ..base
+            };
+            self.run(&mut enc, "clear_app", &u, &[(28, &self.grads[APPEARANCE])])
+                .await?;
+            let u = Uniform {
+                count: (r * ad) as u32,
+                n_in: n as u32,
+                ..base
+            };
+            self.run(
+                &mut enc,
+                "appearance_grad",
+                &u,
+                &[
+                    (1, &w.b_rays),
+                    (22, &w.d_cin),
+                    (28, &self.grads[APPEARANCE]),
+                ],
+            )
+            .await?;
+        }
+        let inv2 = sch.losses.inv_two_var();
+        for (l, lv) in w.levels.iter().enumerate() {
+            let u = Uniform {
+                count: r32,
+                n_in: lv.n as u32,
+                n_out: n as u32,
+                scale_a: sch.interlevel / (r * n) as f32,
+                scale_b: sch.proposal_depth / r as f32,
+                scale_c: sch.proposal_sky / r as f32,
+                inv_two_var: inv2,
+                stat_col: (1 + 3 * l) as u32,
+                ..base
+            };
+            self.run(
+                &mut enc,
+                "proposal_dw",
+                &u,
+                &[
+                    (3, &lv.s),
+                    (4, &lv.t),
+                    (33, &lv.weights),
+                    (26, &w.s),
+                    (27, &w.w_fin),
+                    (25, &w.targets),
+                    (11, &w.scratch),
+                    (24, &w.ray_stats),
+                ],
+            )
+            .await?;
+            let u = Uniform {
+                count: r32,
+                n_in: lv.n as u32,
+                out_dim: 1,
+                ..base
+            };
+            self.run(
+                &mut enc,
+                "proposal_d_out",
+                &u,
+                &[
+                    (4, &lv.t),
+                    (34, &lv.density),
+                    (33, &lv.weights),
+                    (5, &lv.out),
+                    (11, &w.scratch),
+                    (23, &lv.d_out),
+                ],
+            )
+            .await?;
+            let rows = (r * lv.n) as u32;
+            mlp::record_backward(
+                &self.gpu,
+                &mut enc,
+                &c.proposal_mlp(l),
+                rows,
+                &BackwardBuffers {
+                    params: &self.params[PROPOSAL + 2 * l + 1],
+                    input: &lv.features,
+                    saved: &lv.saved,
+                    d_output: &lv.d_out,
+                    scratch: &lv.mlp_scratch,
+                    d_params: &self.grads[PROPOSAL + 2 * l + 1],
+                    d_input: Some(&lv.d_features),
+                },
+                false,
+            )
+            .await?;
+            hashgrid::record_backward_params(
+                &self.gpu,
+                &mut enc,
+                &HashGridLayout::new(&c.proposals[l].grid)?,
+                GpuPositions {
+                    buffer: &lv.pos,
+                    n: rows,
+                },
+                &lv.d_features,
+                &self.grads[PROPOSAL + 2 * l],
+                false,
+            )
+            .await?;
+        }
+        if update {
+            let (a, cc) = adam.corrections(lr, adam_t);
+            for i in 0..self.sizes.len() {
+                let u = Uniform {
+                    count: self.sizes[i] as u32,
+                    adam_a: a,
+                    adam_c: cc,
+                    beta1: adam.beta1,
+                    beta2: adam.beta2,
+                    eps: adam.eps,
+                    ..base
+                };
+                self.run(
+                    &mut enc,
+                    "adam",
+                    &u,
+                    &[
+                        (29, &self.params[i]),
+                        (30, &self.m[i]),
+                        (31, &self.v[i]),
+                        (32, &self.grads[i]),
+                    ],
+                )
+                .await?;
+            }
+        }
+        let ss = stat_stride(c);
+        let mut out = self
+            .gpu
+            .finish_and_read::<f32>(enc, &[(&w.losses, r * 4), (&w.ray_stats, r * ss)])
+            .await?
+            .into_iter();
+        let per_ray: Vec<RayLoss> = out
+            .next()
+            .unwrap_or_default()
+            .chunks_exact(4)
+            .map(|q| RayLoss {
+                rgb: q[0],
+                depth: q[1],
+                normal: q[2],
+                sky: q[3],
+            })
+            .collect();
+        let stats_rows = out.next().unwrap_or_default();
+        let losses = Losses::from_per_ray(per_ray, &sch.losses);
+        Ok(stats_from(&losses, &stats_rows, ss, sch, r, n))
+    }
+
+    /// Renders rays with the current parameters (no jitter, proposals fully annealed), `chunk` at a time.
+    pub async fn render(
+        &mut self,
+        rays: &[TrainRay],
+        normals: bool,
+        chunk: usize,
+    ) -> Result<Vec<RenderedRay>, GpuError> {
+        let n = self.cfg.sampler.samples;
+        let chunk = chunk.min(self.max_rays(normals)).max(1);
+        let mut out = Vec::with_capacity(rays.len());
+        for part in rays.chunks(chunk) {
+            let r = part.len();
+            let nm = if normals { r } else { 0 };
+            self.ensure_work(r, nm)?;
+            self.write_rays(part, None);
+            let w = self.work.as_ref().expect("work buffers");
+            let mut enc = self.gpu.encoder("render");
+            self.record_forward(&mut enc, r, nm, false, 1.0).await?;
+            render::record_render(
+                &self.gpu,
+                &mut enc,
+                self.ray_batch(w, r, normals),
+                Background::LastSample,
+                &w.w_fin,
+                &w.rays_out,
+            )
+            .await?;
+            let mut back = self
+                .gpu
+                .finish_and_read::<f32>(enc, &[(&w.rays_out, r * 8), (&w.t, r * (n + 1))])
+                .await?
+                .into_iter();
+            let ro: Vec<RayOutput> =
+                bytemuck::cast_slice(&back.next().unwrap_or_default()).to_vec();
+            let t = back.next().unwrap_or_default();
+            for (ray, o) in ro.into_iter().enumerate() {
+                let te = &t[ray * (n + 1)..(ray + 1) * (n + 1)];
+                out.push(RenderedRay {
+                    out: o,
+                    expected_depth: super::cpu::expected_depth(&o, te),
+                });
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// The step's statistics from the per-ray rows, summed as [`super::cpu::train_step`] sums them.
+fn stats_from(
+    losses: &Losses,
+    rows: &[f32],
+    stride: usize,
+    sch: &StepSchedule,
+    r: usize,
+    n: usize,
+) -> StepStats {
+    let mut s = StepStats {
+        rgb_mse: losses.rgb,
+        depth: losses.depth,
+        normal: losses.normal,
+        sky: losses.sky,
+        loss: losses.total,
+        ..Default::default()
+    };
+    let col = |c: usize| -> f64 { rows.chunks_exact(stride).map(|q| q[c] as f64).sum() };
+    s.distortion = col(0) / r as f64;
+    s.loss += sch.distortion as f64 * s.distortion;
+    for l in 0..(stride - 1) / 3 {
+        let il = col(1 + 3 * l) / (r * n) as f64;
+        s.interlevel += il;
+        s.loss += sch.interlevel as f64 * il
+            + sch.proposal_depth as f64 * col(2 + 3 * l) / r as f64
+            + sch.proposal_sky as f64 * col(3 + 3 * l) / r as f64;
+    }
+    s
+}

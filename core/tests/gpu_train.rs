@@ -1,0 +1,236 @@
+//! The WGSL training step against its CPU referee (`train::cpu`), on random parameters and rays through a
+//! poisoned device: every gradient tensor, the loss terms, the Adam update and the renderer. The CPU chain
+//! is itself checked against finite differences (`train::cpu` tests), so agreement here carries that over.
+
+mod common;
+
+use rand::{Rng, SeedableRng};
+use silvr_core::field::hashgrid::HashGridConfig;
+use silvr_core::field::model::{ModelConfig, Params};
+use silvr_core::render::{LossConfig, RayTarget};
+use silvr_core::train::adam::{AdamConfig, AdamState};
+use silvr_core::train::cpu::{self, Batch, StepSchedule, TrainRay};
+use silvr_core::train::gpu::GpuEngine;
+
+fn tiny() -> ModelConfig {
+    let mut m = ModelConfig::nerfacto(3);
+    m.field.grid = HashGridConfig {
+        levels: 4,
+        features_per_level: 2,
+        log2_table_size: 10,
+        base_resolution: 4,
+        finest_resolution: 64,
+    };
+    m.field.density_hidden = 16;
+    m.field.colour_hidden = 16;
+    m.field.appearance_dim = 4;
+    m.sampler.proposal_samples = vec![16, 12];
+    m.sampler.samples = 8;
+    for p in &mut m.proposals {
+        p.grid.log2_table_size = 8;
+        p.grid.levels = 3;
+    }
+    m
+}
+
+fn setup(seed: u64, r: usize) -> (ModelConfig, Params, Batch) {
+    let cfg = tiny();
+    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed);
+    let mut params = Params::init(&cfg, seed).unwrap();
+    for t in &mut params.tensors {
+        for v in t.iter_mut() {
+            *v += rng.random_range(-0.3..0.3f32);
+        }
+    }
+    let rays: Vec<TrainRay> = (0..r)
+        .map(|i| {
+            let d = [
+                rng.random_range(-1.0..1.0f32),
+                rng.random_range(-1.0..1.0),
+                1.0,
+            ];
+            let l = (d[0] * d[0] + d[1] * d[1] + 1.0).sqrt();
+            TrainRay {
+                origin: [
+                    rng.random_range(-0.3..0.3),
+                    rng.random_range(-0.3..0.3),
+                    -0.5,
+                ],
+                dir: d.map(|v| v / l),
+                // Every fourth ray is a held-out view's (the mean embedding).
+                appearance: if i % 4 == 3 { u32::MAX } else { (i % 3) as u32 },
+            }
+        })
+        .collect();
+    let targets: Vec<RayTarget> = (0..r)
+        .map(|i| RayTarget {
+            rgb: [rng.random(), rng.random(), rng.random()],
+            depth: if i % 5 < 3 {
+                rng.random_range(0.5..1.5)
+            } else {
+                0.0
+            },
+            normal: if i < r / 3 {
+                [rng.random_range(-1.0..1.0), 0.3, -1.0]
+            } else {
+                [0.0; 3]
+            },
+            sky: (i % 5 == 4) as u32,
+        })
+        .collect();
+    let batch = Batch {
+        rays,
+        targets,
+        jitter: (0..r * 3).map(|_| rng.random()).collect(),
+        normal_rays: r / 3,
+    };
+    (cfg, params, batch)
+}
+
+fn schedule(anneal: f32) -> StepSchedule {
+    StepSchedule {
+        step: 7,
+        anneal,
+        losses: LossConfig {
+            rgb: 1.0,
+            depth: 0.5,
+            normal: 0.1,
+            sky: 0.5,
+            depth_sigma: 0.3,
+        },
+        proposal_depth: 0.5,
+        proposal_sky: 0.5,
+        interlevel: 1.0,
+        distortion: 0.1,
+        normals: true,
+    }
+}
+
+fn close(name: &str, gpu: &[f32], cpu: &[f32], rel: f32) {
+    assert_eq!(gpu.len(), cpu.len(), "{name}: lengths");
+    let scale = cpu.iter().fold(0.0f32, |a, v| a.max(v.abs())).max(1e-12);
+    let mut worst = (0.0f32, 0usize);
+    for (i, (g, c)) in gpu.iter().zip(cpu).enumerate() {
+        assert!(g.is_finite(), "{name}[{i}] = {g} (poison or NaN), cpu {c}");
+        let e = (g - c).abs() / scale;
+        if e > worst.0 {
+            worst = (e, i);
+        }
+    }
+    eprintln!("{name}: worst relative error {:e}", worst.0);
+    assert!(
+        worst.0 <= rel,
+        "{name}: worst [{}] gpu {} vs cpu {} (relative to max |g| {scale}: {})",
+        worst.1,
+        gpu[worst.1],
+        cpu[worst.1],
+        worst.0
+    );
+}
+
+#[test]
+fn training_step_matches_the_cpu_reference() {
+    let Some(gpu) = common::gpu() else { return };
+    for (seed, anneal) in [(1u64, 1.0f32), (2, 0.0), (3, 0.6)] {
+        let (cfg, params, batch) = setup(seed, 37);
+        let sch = schedule(anneal);
+        let (g_cpu, s_cpu) = cpu::train_step(&cfg, &params, &batch, &sch).unwrap();
+        let zeros: Vec<Vec<f32>> = params.tensors.iter().map(|t| vec![0.0; t.len()]).collect();
+        let mut eng = GpuEngine::new(gpu.clone(), &cfg, &params, &zeros, &zeros).unwrap();
+        let adam = AdamConfig::default();
+        let s_gpu = pollster::block_on(eng.step(&batch, &sch, &adam, 1e-2, 1, false)).unwrap();
+        let g_gpu = pollster::block_on(eng.download_grads()).unwrap();
+        for (k, name) in params.names.iter().enumerate() {
+            close(&format!("seed {seed} {name}"), &g_gpu[k], &g_cpu[k], 1e-3);
+        }
+        for (what, a, b) in [
+            ("loss", s_gpu.loss, s_cpu.loss),
+            ("rgb", s_gpu.rgb_mse, s_cpu.rgb_mse),
+            ("depth", s_gpu.depth, s_cpu.depth),
+            ("normal", s_gpu.normal, s_cpu.normal),
+            ("sky", s_gpu.sky, s_cpu.sky),
+            ("interlevel", s_gpu.interlevel, s_cpu.interlevel),
+            ("distortion", s_gpu.distortion, s_cpu.distortion),
+        ] {
+            assert!(
+                (a - b).abs() <= 1e-3 * b.abs() + 1e-6,
+                "seed {seed} {what}: gpu {a} vs cpu {b}"
+            );
+        }
+        assert!(s_cpu.normal > 0.0 && s_cpu.depth > 0.0 && s_cpu.sky > 0.0);
+    }
+}
+
+#[test]
+fn adam_update_matches_the_cpu_reference() {
+    let Some(gpu) = common::gpu() else { return };
+    let (cfg, params, batch) = setup(4, 20);
+    let sch = schedule(1.0);
+    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(8);
+    let m: Vec<Vec<f32>> = params
+        .tensors
+        .iter()
+        .map(|t| {
+            (0..t.len())
+                .map(|_| rng.random_range(-1e-2..1e-2))
+                .collect()
+        })
+        .collect();
+    let v: Vec<Vec<f32>> = params
+        .tensors
+        .iter()
+        .map(|t| (0..t.len()).map(|_| rng.random_range(0.0..1e-4)).collect())
+        .collect();
+    let adam = AdamConfig::default();
+    let mut eng = GpuEngine::new(gpu, &cfg, &params, &m, &v).unwrap();
+    pollster::block_on(eng.step(&batch, &sch, &adam, 5e-3, 3, true)).unwrap();
+    let grads = pollster::block_on(eng.download_grads()).unwrap();
+    let (p_gpu, m_gpu, v_gpu) = pollster::block_on(eng.download()).unwrap();
+    // The CPU update from the GPU's own gradients.
+    let mut st = AdamState { m, v, t: 2 };
+    let mut p_cpu = params.tensors.clone();
+    st.update(&adam, 5e-3, &mut p_cpu, &grads);
+    for k in 0..p_cpu.len() {
+        close(&format!("params {k}"), &p_gpu[k], &p_cpu[k], 1e-5);
+        close(&format!("m {k}"), &m_gpu[k], &st.m[k], 1e-5);
+        close(&format!("v {k}"), &v_gpu[k], &st.v[k], 1e-5);
+    }
+    assert_ne!(p_gpu[0], params.tensors[0], "the update moved nothing");
+}
+
+#[test]
+fn rendering_matches_the_cpu_reference() {
+    let Some(gpu) = common::gpu() else { return };
+    let (cfg, params, batch) = setup(5, 29);
+    let zeros: Vec<Vec<f32>> = params.tensors.iter().map(|t| vec![0.0; t.len()]).collect();
+    let mut eng = GpuEngine::new(gpu, &cfg, &params, &zeros, &zeros).unwrap();
+    for normals in [false, true] {
+        // Chunks smaller than the batch exercise buffer reuse.
+        let g = pollster::block_on(eng.render(&batch.rays, normals, 11)).unwrap();
+        let c = cpu::render_rays(&cfg, &params, &batch.rays, normals, 64).unwrap();
+        let flat = |v: &[cpu::RenderedRay]| -> Vec<f32> {
+            v.iter()
+                .flat_map(|r| {
+                    let o = r.out;
+                    [
+                        o.rgb[0],
+                        o.rgb[1],
+                        o.rgb[2],
+                        o.accumulation,
+                        o.normal[0],
+                        o.normal[1],
+                        o.normal[2],
+                        o.depth,
+                        r.expected_depth,
+                    ]
+                })
+                .collect()
+        };
+        close(
+            &format!("render normals={normals}"),
+            &flat(&g),
+            &flat(&c),
+            1e-3,
+        );
+    }
+}
