@@ -213,6 +213,7 @@ fn main() {
             seed,
             export_rays,
             quiet: false,
+            view_normals: true,
         })
         .map(|_| ()),
         Command::Demo { preset, seed, out } => demo(preset.as_deref(), seed, &out),
@@ -449,8 +450,10 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
             backend: "auto".into(),
             downscale: 1,
             seed,
-            export_rays: 100_000,
+            export_rays: 60_000,
             quiet: true,
+            // The demo reports PSNR/SSIM; normal renders are `silvr train`'s.
+            view_normals: false,
             depth_sigma: None,
         })?;
         let points = summary

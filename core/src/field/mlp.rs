@@ -470,85 +470,97 @@ pub fn backward_cpu(
     })
 }
 
-/// Transposed weights per layer (`[fan_in][fan_out]`), for [`forward_fast`].
-fn transposed(cfg: &MlpConfig, params: &[f32]) -> Vec<Vec<f32>> {
-    cfg.layers()
-        .iter()
-        .map(|ly| {
-            let mut t = vec![0.0f32; ly.fan_in * ly.fan_out];
-            for j in 0..ly.fan_out {
-                for k in 0..ly.fan_in {
-                    t[k * ly.fan_out + j] = params[ly.weights + j * ly.fan_in + k];
-                }
-            }
-            t
-        })
-        .collect()
-}
-
-/// The forward of [`forward_cpu`] written for speed (the CPU training fallback): axpy over transposed
-/// weights, which vectorises, skipping zero (ReLU'd) inputs. Same layout and results up to summation order.
+/// The forward of [`forward_cpu`] written for speed (the CPU training fallback and renderer): per chunk of
+/// rows, one `matrixmultiply::sgemm` per layer (bias rows first, then C += A·Wᵀ, read straight from the
+/// parameter layout through strides), hidden outputs written into the saved rows in place. Same layout and
+/// results up to summation order.
 pub fn forward_fast(
     config: &MlpConfig,
     params: &[f32],
     input: &[f32],
 ) -> Result<MlpForward, GpuError> {
+    const CHUNK: usize = 256;
     let n = config.rows(params, input)?;
     let layers = config.layers();
-    let wt = transposed(config, params);
     let ss = config.saved_per_row();
     let no = config.output;
+    let ni = config.input;
     let mut output = vec![0.0f32; n * no];
     let mut saved = vec![0.0f32; n * ss];
     let sig = config.output_activation == Activation::Sigmoid;
     let body = |x: &[f32], out: &mut [f32], sv: &mut [f32]| {
-        let mut a = [0.0f32; MAX_WIDTH];
-        let mut z = [0.0f32; MAX_WIDTH];
-        a[..x.len()].copy_from_slice(x);
+        let rows = x.len() / ni;
         for (l, ly) in layers.iter().enumerate() {
             let last = l + 1 == layers.len();
             let fo = ly.fan_out;
-            z[..fo].copy_from_slice(&params[ly.bias..ly.bias + fo]);
-            let w = &wt[l];
-            for k in 0..ly.fan_in {
-                let ak = a[k];
-                if ak != 0.0 {
-                    let wk = &w[k * fo..(k + 1) * fo];
-                    for (zj, wj) in z[..fo].iter_mut().zip(wk) {
-                        *zj += ak * wj;
-                    }
+            // Destination: the saved rows (hidden layers; the output layer under Sigmoid) or the output.
+            let (dst_off, dst_stride) = if !last || sig {
+                (ly.saved, ss)
+            } else {
+                (0, no)
+            };
+            // Source: the input rows, or the previous layer's saved rows.
+            let (src, src_stride): (&[f32], usize) = if l == 0 {
+                (x, ni)
+            } else {
+                (&sv[layers[l - 1].saved..], ss)
+            };
+            let mut c = vec![0.0f32; rows * fo];
+            for r in 0..rows {
+                c[r * fo..(r + 1) * fo].copy_from_slice(&params[ly.bias..ly.bias + fo]);
+            }
+            let w = &params[ly.weights..ly.weights + fo * ly.fan_in];
+            // SAFETY: the pointers cover rows × fan_in (A, row stride src_stride), fan_in × fan_out (B = Wᵀ:
+            // element (k, j) at j·fan_in + k) and rows × fan_out (C, contiguous), all inside their slices.
+            unsafe {
+                matrixmultiply::sgemm(
+                    rows,
+                    ly.fan_in,
+                    fo,
+                    1.0,
+                    src.as_ptr(),
+                    src_stride as isize,
+                    1,
+                    w.as_ptr(),
+                    1,
+                    ly.fan_in as isize,
+                    1.0,
+                    c.as_mut_ptr(),
+                    fo as isize,
+                    1,
+                );
+            }
+            let dst: &mut [f32] = if !last || sig { &mut *sv } else { &mut *out };
+            for r in 0..rows {
+                let d = &mut dst[r * dst_stride + dst_off..r * dst_stride + dst_off + fo];
+                for (dj, &cj) in d.iter_mut().zip(&c[r * fo..(r + 1) * fo]) {
+                    *dj = if !last {
+                        cj.max(0.0)
+                    } else if sig {
+                        sigmoid(cj)
+                    } else {
+                        cj
+                    };
                 }
             }
-            for zj in &mut z[..fo] {
-                *zj = if !last {
-                    zj.max(0.0)
-                } else if sig {
-                    sigmoid(*zj)
-                } else {
-                    *zj
-                };
+            if last && sig {
+                for r in 0..rows {
+                    out[r * no..(r + 1) * no]
+                        .copy_from_slice(&sv[r * ss + ly.saved..r * ss + ly.saved + no]);
+                }
             }
-            if !last || sig {
-                sv[ly.saved..ly.saved + fo].copy_from_slice(&z[..fo]);
-            }
-            if last {
-                out.copy_from_slice(&z[..fo]);
-            }
-            a[..fo].copy_from_slice(&z[..fo]);
         }
     };
     if ss == 0 {
         output
-            .par_chunks_mut(no)
-            .zip(input.par_chunks(config.input))
-            .with_min_len(256)
+            .par_chunks_mut(no * CHUNK)
+            .zip(input.par_chunks(ni * CHUNK))
             .for_each(|(o, x)| body(x, o, &mut []));
     } else {
         output
-            .par_chunks_mut(no)
-            .zip(input.par_chunks(config.input))
-            .zip(saved.par_chunks_mut(ss))
-            .with_min_len(256)
+            .par_chunks_mut(no * CHUNK)
+            .zip(input.par_chunks(ni * CHUNK))
+            .zip(saved.par_chunks_mut(ss * CHUNK))
             .for_each(|((o, x), s)| body(x, o, s));
     }
     Ok(MlpForward { output, saved })
