@@ -566,8 +566,9 @@ pub fn forward_fast(
     Ok(MlpForward { output, saved })
 }
 
-/// The backward of [`backward_cpu`] written for speed: per chunk of rows a partial gradient, vectorised
-/// axpys, zero deltas skipped; the partials are added in chunk order (deterministic).
+/// The backward of [`backward_cpu`] written for speed: per chunk of rows a partial gradient from GEMMs
+/// (dW += Gᵀ·A, dL/dinput = G·W, `matrixmultiply::sgemm`); the partials are added in chunk order
+/// (deterministic).
 pub fn backward_fast(
     config: &MlpConfig,
     params: &[f32],
@@ -599,55 +600,93 @@ pub fn backward_fast(
         .enumerate()
         .map(|(c, dx_chunk)| {
             let mut part = vec![0.0f32; np];
-            let mut g = [0.0f32; MAX_WIDTH];
-            let mut h = [0.0f32; MAX_WIDTH];
-            for r in c * CH..((c + 1) * CH).min(n) {
-                let srow = &saved[r * ss..(r + 1) * ss];
-                let lo = layers[layers.len() - 1];
+            let r0 = c * CH;
+            let rows = (n - r0).min(CH);
+            // G: dL/d(pre-activation) of the current layer, rows × fan_out; H: dL/d(its input).
+            let lo = layers[layers.len() - 1];
+            let mut g = vec![0.0f32; rows * no];
+            for i in 0..rows {
+                let r = r0 + i;
                 for j in 0..no {
                     let v = d_output[r * no + j];
-                    g[j] = if sig {
-                        let y = srow[lo.saved + j];
+                    g[i * no + j] = if sig {
+                        let y = saved[r * ss + lo.saved + j];
                         v * y * (1.0 - y)
                     } else {
                         v
                     };
                 }
-                for l in (0..layers.len()).rev() {
-                    let ly = layers[l];
-                    let a: &[f32] = if l == 0 {
-                        &input[r * ni..(r + 1) * ni]
-                    } else {
-                        let b = layers[l - 1];
-                        &srow[b.saved..b.saved + b.fan_out]
-                    };
-                    let need_h = l > 0 || input_grads;
-                    h[..ly.fan_in].fill(0.0);
-                    for j in 0..ly.fan_out {
-                        let d = g[j];
-                        if d == 0.0 {
-                            continue;
-                        }
-                        part[ly.bias + j] += d;
-                        let w = &mut part[ly.weights + j * ly.fan_in..][..ly.fan_in];
-                        for (wk, &ak) in w.iter_mut().zip(a) {
-                            *wk += d * ak;
-                        }
-                        if need_h {
-                            let wr = &params[ly.weights + j * ly.fan_in..][..ly.fan_in];
-                            for (hk, &wk) in h[..ly.fan_in].iter_mut().zip(wr) {
-                                *hk += d * wk;
+            }
+            for l in (0..layers.len()).rev() {
+                let ly = layers[l];
+                let (fi, fo) = (ly.fan_in, ly.fan_out);
+                // This layer's input rows: the MLP input, or the previous layer's saved output.
+                let (a, a_stride): (&[f32], usize) = if l == 0 {
+                    (&input[r0 * ni..], ni)
+                } else {
+                    (&saved[r0 * ss + layers[l - 1].saved..], ss)
+                };
+                for i in 0..rows {
+                    for (pb, gj) in part[ly.bias..ly.bias + fo].iter_mut().zip(&g[i * fo..]) {
+                        *pb += gj;
+                    }
+                }
+                let w = &params[ly.weights..ly.weights + fo * fi];
+                let need_h = l > 0 || input_grads;
+                let mut h = vec![0.0f32; if need_h { rows * fi } else { 0 }];
+                // SAFETY: every operand lies inside its slice: G is rows × fo (contiguous), A is rows × fi
+                // at row stride a_stride (a holds at least (rows − 1)·a_stride + fi values), the weight
+                // gradient and W are fo × fi row-major, H is rows × fi.
+                unsafe {
+                    // dW += Gᵀ·A.
+                    matrixmultiply::sgemm(
+                        fo,
+                        rows,
+                        fi,
+                        1.0,
+                        g.as_ptr(),
+                        1,
+                        fo as isize,
+                        a.as_ptr(),
+                        a_stride as isize,
+                        1,
+                        1.0,
+                        part[ly.weights..].as_mut_ptr(),
+                        fi as isize,
+                        1,
+                    );
+                    if need_h {
+                        // H = G·W.
+                        matrixmultiply::sgemm(
+                            rows,
+                            fo,
+                            fi,
+                            1.0,
+                            g.as_ptr(),
+                            fo as isize,
+                            1,
+                            w.as_ptr(),
+                            fi as isize,
+                            1,
+                            0.0,
+                            h.as_mut_ptr(),
+                            fi as isize,
+                            1,
+                        );
+                    }
+                }
+                if l > 0 {
+                    // Through the previous layer's ReLU: its saved output is > 0 where it passed.
+                    for i in 0..rows {
+                        for k in 0..fi {
+                            if a[i * a_stride + k] <= 0.0 {
+                                h[i * fi + k] = 0.0;
                             }
                         }
                     }
-                    if l > 0 {
-                        for k in 0..ly.fan_in {
-                            g[k] = if a[k] > 0.0 { h[k] } else { 0.0 };
-                        }
-                    } else if input_grads {
-                        let i = r - c * CH;
-                        dx_chunk[i * ni..(i + 1) * ni].copy_from_slice(&h[..ni]);
-                    }
+                    g = h;
+                } else if input_grads {
+                    dx_chunk[..rows * ni].copy_from_slice(&h);
                 }
             }
             part
