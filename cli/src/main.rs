@@ -478,6 +478,7 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
             "rays_per_batch": rays,
             "model": model,
             "backend": summary.backend,
+            "adapter": summary.adapter,
         });
         eprintln!(
             "[demo] {key}: {} steps in {:.1} s, held-out PSNR {psnr:.2} dB, SSIM {ssim:.3}",

@@ -68,7 +68,10 @@ pub struct TrainSummary {
     pub final_psnr_train: f64,
     pub views: Vec<ViewScore>,
     pub points: Option<PathBuf>,
+    /// `wgpu` or `cpu`.
     pub backend: String,
+    /// The adapter (or, on the CPU, why the CPU).
+    pub adapter: String,
 }
 
 /// `--backend`: `wgpu` forces the WGSL engine (on any adapter, lavapipe included), `cpu` the rayon
@@ -134,9 +137,14 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         );
     }
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let (engine, backend) = backend_for(&a.backend)?;
+    let (engine, adapter) = backend_for(&a.backend)?;
+    let backend = match engine {
+        Backend::Cpu => "cpu",
+        Backend::Wgpu(_) => "wgpu",
+    }
+    .to_string();
     if !a.quiet {
-        eprintln!("backend: {backend}");
+        eprintln!("backend: {backend}, {adapter}");
     }
     let mut trainer = match &a.resume {
         Some(p) => {
@@ -243,12 +251,14 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         views,
         points,
         backend,
+        adapter,
     };
     let json = serde_json::json!({
         "mode": trainer.config.mode.name(),
         "steps": summary.steps,
         "train_s": summary.train_s,
         "backend": summary.backend,
+        "adapter": summary.adapter,
         "train_psnr_last20": summary.final_psnr_train,
         "heldout": summary.views,
         "heldout_psnr_mean": mean(summary.views.iter().map(|v| v.psnr)),
