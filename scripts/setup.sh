@@ -49,8 +49,11 @@ if ! (command -v wasm-bindgen >/dev/null && wasm-bindgen --version | grep -q ' 0
   cargo install -q wasm-bindgen-cli --version 0.2.130 --force
 fi
 if ! (command -v trunk >/dev/null && trunk --version | grep -q ' 0.21.14'); then
-  log "cargo install trunk 0.21.14 (~7 min)"
-  cargo install -q trunk --version 0.21.14 --locked --force
+  # Without its TLS / update-check features (we build offline with wasm-bindgen and wasm-opt already on
+  # PATH) and without trunk's fat LTO + one codegen unit, which serialise the build on a 2-core machine.
+  log "cargo install trunk 0.21.14 (a few minutes)"
+  CARGO_PROFILE_RELEASE_LTO=off CARGO_PROFILE_RELEASE_CODEGEN_UNITS=16 CARGO_PROFILE_RELEASE_OPT_LEVEL=1 \
+    cargo install -q trunk --version 0.21.14 --locked --no-default-features --force
 fi
 
 if [ ! -x web/node_modules/.bin/wasm-opt ] || [ web/package-lock.json -nt web/node_modules/.package-lock.json ]; then

@@ -12,6 +12,7 @@ use silvr_core::lidar::{map, project};
 use silvr_core::synthetic::{generate, Preset};
 
 mod train;
+mod uncertainty;
 
 #[derive(Parser)]
 #[command(
@@ -144,6 +145,10 @@ enum Command {
         #[arg(long, default_value_t = 300.0)]
         max_seconds: f64,
     },
+    /// Epistemic uncertainty of a trained field (perturbation field + Laplace, colour and lidar depth):
+    /// writes uncertainty.bin, the read-out as fields of points.ply, points_filtered.ply and an
+    /// uncertainty image; with --gt also sparsification curves, AUSE and plots.
+    Uncertainty(UncertaintyCmd),
     /// The main job: generate the synthetic world, build the reconstructions, evaluate, write report.json.
     Demo {
         /// `ci` or `default`; `ci` when the only GPU adapter is a software one.
@@ -154,6 +159,54 @@ enum Command {
         #[arg(long, default_value = "silvr-demo")]
         out: PathBuf,
     },
+}
+
+#[derive(clap::Args)]
+struct UncertaintyCmd {
+    /// Folder of a `silvr train` run (checkpoint.ckpt, train.json, points.ply).
+    model: PathBuf,
+    /// Dataset the model was trained on (default: the one train.json names).
+    #[arg(long)]
+    dataset: Option<PathBuf>,
+    /// Ground truth (a dataset with gt/cloud.ply) for sparsification curves, AUSE and the filtered
+    /// cloud's scores.
+    #[arg(long)]
+    gt: Option<PathBuf>,
+    /// auto, wgpu or cpu.
+    #[arg(long, default_value = "auto")]
+    backend: String,
+    /// Perturbation-grid cells per axis.
+    #[arg(long, default_value_t = 256)]
+    cells: u32,
+    /// Batches of training rays.
+    #[arg(long, default_value_t = 1000)]
+    batches: usize,
+    #[arg(long, default_value_t = 4096)]
+    rays: usize,
+    #[arg(long, default_value_t = 7)]
+    seed: u64,
+}
+
+fn uncertainty_cmd(c: UncertaintyCmd) -> Result<()> {
+    let config = silvr_core::uncertainty::UncertaintyConfig {
+        cells: c.cells,
+        batches: c.batches,
+        rays_per_batch: c.rays,
+        seed: c.seed,
+        ..Default::default()
+    };
+    let summary = uncertainty::run(&uncertainty::UncertaintyArgs {
+        model_dir: c.model.clone(),
+        dataset: c.dataset,
+        backend: c.backend,
+        config,
+        quiet: false,
+    })?;
+    if let Some(gt) = c.gt {
+        let v = uncertainty::evaluate(&c.model, &gt, &summary)?;
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    }
+    Ok(())
 }
 
 fn main() {
@@ -214,8 +267,10 @@ fn main() {
             export_rays,
             quiet: false,
             view_normals: true,
+            uncertainty: None,
         })
         .map(|_| ()),
+        Command::Uncertainty(c) => uncertainty_cmd(c),
         Command::Demo { preset, seed, out } => demo(preset.as_deref(), seed, &out),
         Command::BenchTrain {
             dataset,
@@ -428,6 +483,7 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
     let (steps, model, rays) = demo_training(name);
     let mut methods = serde_json::json!({ "lidar_only": report_json(&ev.report) });
     let mut rows = vec![("lidar_only".to_string(), ev.report.clone())];
+    let mut uncertainty_block = None;
     let mut timing = serde_json::json!({
         "synth_s": synth_s,
         "lidar_only_s": lidar_s,
@@ -455,6 +511,7 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
             // The demo reports PSNR/SSIM; normal renders are `silvr train`'s.
             view_normals: false,
             depth_sigma: None,
+            uncertainty: (mode == silvr_core::train::Mode::Silvr).then(|| demo_uncertainty(name)),
         })?;
         let points = summary
             .points
@@ -471,6 +528,19 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
             obj.insert("heldout_views".into(), summary.views.len().into());
         }
         methods[key] = v;
+        if let Some(u) = &summary.uncertainty {
+            let block = uncertainty::evaluate(&dir, &dataset, u)?;
+            eprintln!(
+                "[demo] uncertainty ({:.1} s): AUSE colour {:.3}, depth {:.3}, combined {:.3} (random {:.3})",
+                u.seconds,
+                block["ause_colour"].as_f64().unwrap_or(f64::NAN),
+                block["ause_depth"].as_f64().unwrap_or(f64::NAN),
+                block["ause_combined"].as_f64().unwrap_or(f64::NAN),
+                block["ause_random"].as_f64().unwrap_or(f64::NAN)
+            );
+            uncertainty_block = Some(block);
+            timing["uncertainty_s"] = u.seconds.into();
+        }
         timing[key] = serde_json::json!({
             "train_s": summary.train_s,
             "total_s": t.elapsed().as_secs_f64(),
@@ -505,6 +575,7 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
         "seed": seed,
         "dataset": dataset,
         "methods": methods,
+        "uncertainty": uncertainty_block,
         "timing": timing,
     });
     let path = out.join("report.json");
@@ -517,6 +588,19 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
         total.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// The uncertainty pass per preset: `ci` stays under a tenth of its CPU training time.
+fn demo_uncertainty(preset: &str) -> silvr_core::uncertainty::UncertaintyConfig {
+    match preset {
+        "ci" => silvr_core::uncertainty::UncertaintyConfig {
+            cells: 64,
+            batches: 8,
+            rays_per_batch: 1024,
+            ..Default::default()
+        },
+        _ => silvr_core::uncertainty::UncertaintyConfig::default(),
+    }
 }
 
 /// Training length and model size per preset: `ci` fits the 5-minute budget of a 2-core machine.

@@ -59,6 +59,8 @@ pub struct TrainArgs {
     /// sample).
     pub view_normals: bool,
     pub depth_sigma: Option<(f32, f32)>,
+    /// Run the uncertainty pass after training (annotates points.ply, writes uncertainty.bin).
+    pub uncertainty: Option<silvr_core::uncertainty::UncertaintyConfig>,
 }
 
 /// What a finished training run measured.
@@ -72,6 +74,7 @@ pub struct TrainSummary {
     pub backend: String,
     /// The adapter (or, on the CPU, why the CPU).
     pub adapter: String,
+    pub uncertainty: Option<crate::uncertainty::UncertaintySummary>,
 }
 
 /// `--backend`: `wgpu` forces the WGSL engine (on any adapter, lavapipe included), `cpu` the rayon
@@ -244,7 +247,17 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
     } else {
         None
     };
+    let uncertainty = match &a.uncertainty {
+        Some(cfg) => Some(crate::uncertainty::annotate(
+            &mut trainer,
+            cfg,
+            &a.out,
+            a.quiet,
+        )?),
+        None => None,
+    };
     let summary = TrainSummary {
+        uncertainty,
         train_s,
         steps: trainer.step,
         final_psnr_train: -10.0 * mse.max(1e-12).log10(),
@@ -255,6 +268,7 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
     };
     let json = serde_json::json!({
         "mode": trainer.config.mode.name(),
+        "dataset": a.dataset,
         "steps": summary.steps,
         "train_s": summary.train_s,
         "backend": summary.backend,
@@ -264,6 +278,7 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         "heldout_psnr_mean": mean(summary.views.iter().map(|v| v.psnr)),
         "heldout_ssim_mean": mean(summary.views.iter().map(|v| v.ssim)),
         "points": summary.points,
+        "uncertainty_s": summary.uncertainty.as_ref().map(|u| u.seconds),
     });
     write(
         &a.out.join("train.json"),

@@ -28,3 +28,4 @@ pub mod sampler;
 pub mod shaders;
 pub mod synthetic;
 pub mod train;
+pub mod uncertainty;

@@ -15,3 +15,7 @@ pub const MLP: &str = include_str!("../../shaders/mlp.wgsl");
 
 /// nerfacto's proposal sampling, field glue, sampler losses, gradient plumbing and Adam (`train::gpu`).
 pub const TRAIN: &str = include_str!("../../shaders/train.wgsl");
+
+/// The uncertainty pass: render Jacobians, position gradients to world space, Fisher accumulation
+/// (`uncertainty::gpu`).
+pub const UNCERTAINTY: &str = include_str!("../../shaders/uncertainty.wgsl");

@@ -5,87 +5,11 @@
 mod common;
 
 use rand::{Rng, SeedableRng};
-use silvr_core::field::hashgrid::HashGridConfig;
-use silvr_core::field::model::{ModelConfig, Params};
-use silvr_core::render::{LossConfig, RayTarget};
+use silvr_core::field::model::Params;
+use silvr_core::render::LossConfig;
 use silvr_core::train::adam::{AdamConfig, AdamState};
-use silvr_core::train::cpu::{self, Batch, StepSchedule, TrainRay};
+use silvr_core::train::cpu::{self, StepSchedule};
 use silvr_core::train::gpu::GpuEngine;
-
-fn tiny() -> ModelConfig {
-    let mut m = ModelConfig::nerfacto(3);
-    m.field.grid = HashGridConfig {
-        levels: 4,
-        features_per_level: 2,
-        log2_table_size: 10,
-        base_resolution: 4,
-        finest_resolution: 64,
-    };
-    m.field.density_hidden = 16;
-    m.field.colour_hidden = 16;
-    m.field.appearance_dim = 4;
-    m.sampler.proposal_samples = vec![16, 12];
-    m.sampler.samples = 8;
-    for p in &mut m.proposals {
-        p.grid.log2_table_size = 8;
-        p.grid.levels = 3;
-    }
-    m
-}
-
-fn setup(seed: u64, r: usize) -> (ModelConfig, Params, Batch) {
-    let cfg = tiny();
-    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed);
-    let mut params = Params::init(&cfg, seed).unwrap();
-    for t in &mut params.tensors {
-        for v in t.iter_mut() {
-            *v += rng.random_range(-0.3..0.3f32);
-        }
-    }
-    let rays: Vec<TrainRay> = (0..r)
-        .map(|i| {
-            let d = [
-                rng.random_range(-1.0..1.0f32),
-                rng.random_range(-1.0..1.0),
-                1.0,
-            ];
-            let l = (d[0] * d[0] + d[1] * d[1] + 1.0).sqrt();
-            TrainRay {
-                origin: [
-                    rng.random_range(-0.3..0.3),
-                    rng.random_range(-0.3..0.3),
-                    -0.5,
-                ],
-                dir: d.map(|v| v / l),
-                // Every fourth ray is a held-out view's (the mean embedding).
-                appearance: if i % 4 == 3 { u32::MAX } else { (i % 3) as u32 },
-            }
-        })
-        .collect();
-    let targets: Vec<RayTarget> = (0..r)
-        .map(|i| RayTarget {
-            rgb: [rng.random(), rng.random(), rng.random()],
-            depth: if i % 5 < 3 {
-                rng.random_range(0.5..1.5)
-            } else {
-                0.0
-            },
-            normal: if i < r / 3 {
-                [rng.random_range(-1.0..1.0), 0.3, -1.0]
-            } else {
-                [0.0; 3]
-            },
-            sky: (i % 5 == 4) as u32,
-        })
-        .collect();
-    let batch = Batch {
-        rays,
-        targets,
-        jitter: (0..r * 3).map(|_| rng.random()).collect(),
-        normal_rays: r / 3,
-    };
-    (cfg, params, batch)
-}
 
 fn schedule(anneal: f32) -> StepSchedule {
     StepSchedule {
@@ -132,7 +56,7 @@ fn close(name: &str, gpu: &[f32], cpu: &[f32], rel: f32) {
 fn training_step_matches_the_cpu_reference() {
     let Some(gpu) = common::gpu() else { return };
     for (seed, anneal) in [(1u64, 1.0f32), (2, 0.0), (3, 0.6)] {
-        let (cfg, params, batch) = setup(seed, 37);
+        let (cfg, params, batch) = common::setup(seed, 37);
         let sch = schedule(anneal);
         let (g_cpu, s_cpu) = cpu::train_step(&cfg, &params, &batch, &sch).unwrap();
         let zeros: Vec<Vec<f32>> = params.tensors.iter().map(|t| vec![0.0; t.len()]).collect();
@@ -164,7 +88,7 @@ fn training_step_matches_the_cpu_reference() {
 #[test]
 fn adam_update_matches_the_cpu_reference() {
     let Some(gpu) = common::gpu() else { return };
-    let (cfg, params, batch) = setup(4, 20);
+    let (cfg, params, batch) = common::setup(4, 20);
     let sch = schedule(1.0);
     let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(8);
     let m: Vec<Vec<f32>> = params
@@ -201,7 +125,7 @@ fn adam_update_matches_the_cpu_reference() {
 #[test]
 fn rendering_matches_the_cpu_reference() {
     let Some(gpu) = common::gpu() else { return };
-    let (cfg, params, batch) = setup(5, 29);
+    let (cfg, params, batch) = common::setup(5, 29);
     let zeros: Vec<Vec<f32>> = params.tensors.iter().map(|t| vec![0.0; t.len()]).collect();
     let mut eng = GpuEngine::new(gpu, &cfg, &params, &zeros, &zeros).unwrap();
     for normals in [false, true] {

@@ -14,6 +14,7 @@ pub mod image;
 mod kdtree;
 pub mod metrics;
 pub mod occupancy;
+pub mod plot;
 pub mod report;
 
 pub use image::{psnr, psnr_rgb8, ssim, ssim_rgb8, ImageMetricError};

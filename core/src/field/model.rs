@@ -80,6 +80,29 @@ impl ModelConfig {
         }
     }
 
+    /// A model small enough for kernel tests on a software rasteriser and for finite differences
+    /// (3 images, 4 grid levels, 16-wide MLPs, 16 → 12 → 8 samples). Shared by the CPU and GPU tests.
+    pub fn tiny() -> Self {
+        let mut m = ModelConfig::nerfacto(3);
+        m.field.grid = HashGridConfig {
+            levels: 4,
+            features_per_level: 2,
+            log2_table_size: 10,
+            base_resolution: 4,
+            finest_resolution: 64,
+        };
+        m.field.density_hidden = 16;
+        m.field.colour_hidden = 16;
+        m.field.appearance_dim = 4;
+        m.sampler.proposal_samples = vec![16, 12];
+        m.sampler.samples = 8;
+        for p in &mut m.proposals {
+            p.grid.log2_table_size = 8;
+            p.grid.levels = 3;
+        }
+        m
+    }
+
     pub fn density_mlp(&self) -> MlpConfig {
         MlpConfig {
             input: self.field.grid.output_dim(),

@@ -70,7 +70,7 @@ impl StepStats {
 }
 
 /// One sampling level of a batch.
-struct Level {
+pub(crate) struct Level {
     n: usize,
     /// Edges in normalised spacing, R·(n + 1).
     s: Vec<f32>,
@@ -88,7 +88,7 @@ fn edges_to_t(sp: &Spacing, s: &[f32]) -> Vec<f32> {
         .collect()
 }
 
-fn mids(rays: &[TrainRay], t: &[f32], n: usize) -> Vec<[f32; 3]> {
+pub(crate) fn mids(rays: &[TrainRay], t: &[f32], n: usize) -> Vec<[f32; 3]> {
     rays.par_iter()
         .enumerate()
         .with_min_len(64)
@@ -103,11 +103,11 @@ fn mids(rays: &[TrainRay], t: &[f32], n: usize) -> Vec<[f32; 3]> {
 }
 
 /// The proposal levels and the final level's edges (normalised s, distance t).
-type Proposed = (Vec<Level>, Vec<f32>, Vec<f32>);
+pub(crate) type Proposed = (Vec<Level>, Vec<f32>, Vec<f32>);
 
 /// Runs the proposal levels: initial bins, each proposal field, resampling; returns the proposal levels
 /// and the final level's edges (s, t).
-fn propose(
+pub(crate) fn propose(
     cfg: &ModelConfig,
     params: &Params,
     rays: &[TrainRay],
@@ -191,7 +191,12 @@ struct Shaded {
     grad_len: Vec<f32>,
 }
 
-fn appearance_row<'a>(cfg: &ModelConfig, params: &'a Params, mean: &'a [f32], a: u32) -> &'a [f32] {
+pub(crate) fn appearance_row<'a>(
+    cfg: &ModelConfig,
+    params: &'a Params,
+    mean: &'a [f32],
+    a: u32,
+) -> &'a [f32] {
     let d = cfg.field.appearance_dim;
     let table = &params.tensors[APPEARANCE];
     let a = a as usize;
@@ -272,7 +277,7 @@ fn shade(
     })
 }
 
-fn intervals(t: &[f32], r: usize, n: usize) -> Vec<Interval> {
+pub(crate) fn intervals(t: &[f32], r: usize, n: usize) -> Vec<Interval> {
     let mut out = Vec::with_capacity(r * n);
     for ray in 0..r {
         let te = &t[ray * (n + 1)..(ray + 1) * (n + 1)];
@@ -530,35 +535,14 @@ pub fn render_rays(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::field::hashgrid::HashGridConfig;
     use rand::{Rng, SeedableRng};
-
-    fn tiny() -> ModelConfig {
-        let mut m = ModelConfig::nerfacto(3);
-        m.field.grid = HashGridConfig {
-            levels: 4,
-            features_per_level: 2,
-            log2_table_size: 10,
-            base_resolution: 4,
-            finest_resolution: 64,
-        };
-        m.field.density_hidden = 16;
-        m.field.colour_hidden = 16;
-        m.field.appearance_dim = 4;
-        m.sampler.proposal_samples = vec![16, 12];
-        m.sampler.samples = 8;
-        for p in &mut m.proposals {
-            p.grid.log2_table_size = 8;
-        }
-        m
-    }
 
     /// The whole step's analytic gradient for the radiance field's tensors (grid, density MLP, colour MLP,
     /// appearance) against central differences of the step's loss. The interlevel term is off: nerfacto
     /// stops its gradient into the final weights, which differences would see.
     #[test]
     fn step_gradient_matches_finite_differences() {
-        let cfg = tiny();
+        let cfg = ModelConfig::tiny();
         let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(5);
         let mut params = Params::init(&cfg, 9).unwrap();
         // Larger than the init so densities and colours vary along the rays.

@@ -113,6 +113,23 @@ struct Work {
     rays_out: wgpu::Buffer,
 }
 
+/// Borrowed final-level buffers of a recorded forward (see [`GpuEngine::final_forward`]).
+pub(crate) struct FinalForward<'a> {
+    pub rays: &'a wgpu::Buffer,
+    pub t: &'a wgpu::Buffer,
+    pub pos: &'a wgpu::Buffer,
+    pub features: &'a wgpu::Buffer,
+    pub out: &'a wgpu::Buffer,
+    pub saved: &'a wgpu::Buffer,
+    pub colour_in: &'a wgpu::Buffer,
+    pub colour_saved: &'a wgpu::Buffer,
+    pub samples: &'a wgpu::Buffer,
+    pub intervals: &'a wgpu::Buffer,
+    pub colour_scratch: &'a wgpu::Buffer,
+    pub density_scratch: &'a wgpu::Buffer,
+    pub params: &'a [wgpu::Buffer],
+}
+
 /// The WGSL engine: the model's tensors, their gradients and Adam moments on one device.
 pub struct GpuEngine {
     pub gpu: Gpu,
@@ -200,6 +217,47 @@ impl GpuEngine {
             }
         }
         Ok((p, m, v))
+    }
+
+    pub fn model(&self) -> &ModelConfig {
+        &self.cfg
+    }
+
+    /// Uploads rays for a forward pass without jitter (uncertainty).
+    pub(crate) fn prepare_rays(&mut self, rays: &[TrainRay]) -> Result<(), GpuError> {
+        self.ensure_work(rays.len(), 0)?;
+        self.write_rays(rays, None);
+        Ok(())
+    }
+
+    /// Records the forward of the `rays` prepared rays (no jitter, proposals fully annealed, no normals).
+    pub(crate) async fn record_final_forward(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        rays: usize,
+    ) -> Result<(), GpuError> {
+        self.record_forward(enc, rays, 0, false, 1.0).await
+    }
+
+    /// The final level's buffers after [`Self::record_final_forward`], for passes that differentiate
+    /// the trained field.
+    pub(crate) fn final_forward(&self) -> FinalForward<'_> {
+        let w = self.work.as_ref().expect("work buffers");
+        FinalForward {
+            rays: &w.b_rays,
+            t: &w.t,
+            pos: &w.pos,
+            features: &w.features,
+            out: &w.out,
+            saved: &w.saved,
+            colour_in: &w.colour_in,
+            colour_saved: &w.colour_saved,
+            samples: &w.samples,
+            intervals: &w.intervals,
+            colour_scratch: &w.colour_scratch,
+            density_scratch: &w.density_scratch,
+            params: &self.params,
+        }
     }
 
     /// The latest gradients (after [`Self::step`]), for the CPU-vs-GPU tests.

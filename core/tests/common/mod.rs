@@ -1,7 +1,11 @@
 //! Shared by the GPU kernel tests: a poisoned device.
 #![allow(dead_code)]
 
+use rand::{Rng, SeedableRng};
+use silvr_core::field::model::{ModelConfig, Params};
 use silvr_core::gpu::{Gpu, GpuOptions};
+use silvr_core::render::RayTarget;
+use silvr_core::train::cpu::{Batch, TrainRay};
 
 /// Written into every buffer a kernel writes before it runs; an element left untouched reads back as this.
 pub const POISON: u32 = 0xDEAD_BEEF;
@@ -20,4 +24,60 @@ pub fn gpu() -> Option<Gpu> {
         }
         Err(e) => panic!("SILVR_REQUIRE_GPU is set but no GPU is usable: {e}"),
     }
+}
+
+/// The tiny model with parameters randomised well past their init (so densities and colours vary along
+/// rays), and a batch of `r` random rays with every kind of target (lidar, normals, sky, held-out).
+pub fn setup(seed: u64, r: usize) -> (ModelConfig, Params, Batch) {
+    let cfg = ModelConfig::tiny();
+    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed);
+    let mut params = Params::init(&cfg, seed).unwrap();
+    for t in &mut params.tensors {
+        for v in t.iter_mut() {
+            *v += rng.random_range(-0.3..0.3f32);
+        }
+    }
+    let rays: Vec<TrainRay> = (0..r)
+        .map(|i| {
+            let d = [
+                rng.random_range(-1.0..1.0f32),
+                rng.random_range(-1.0..1.0),
+                1.0,
+            ];
+            let l = (d[0] * d[0] + d[1] * d[1] + 1.0).sqrt();
+            TrainRay {
+                origin: [
+                    rng.random_range(-0.3..0.3),
+                    rng.random_range(-0.3..0.3),
+                    -0.5,
+                ],
+                dir: d.map(|v| v / l),
+                // Every fourth ray is a held-out view's (the mean embedding).
+                appearance: if i % 4 == 3 { u32::MAX } else { (i % 3) as u32 },
+            }
+        })
+        .collect();
+    let targets: Vec<RayTarget> = (0..r)
+        .map(|i| RayTarget {
+            rgb: [rng.random(), rng.random(), rng.random()],
+            depth: if i % 5 < 3 {
+                rng.random_range(0.5..1.5)
+            } else {
+                0.0
+            },
+            normal: if i < r / 3 {
+                [rng.random_range(-1.0..1.0), 0.3, -1.0]
+            } else {
+                [0.0; 3]
+            },
+            sky: (i % 5 == 4) as u32,
+        })
+        .collect();
+    let batch = Batch {
+        rays,
+        targets,
+        jitter: (0..r * 3).map(|_| rng.random()).collect(),
+        normal_rays: r / 3,
+    };
+    (cfg, params, batch)
 }

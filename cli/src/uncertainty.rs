@@ -1,0 +1,429 @@
+//! `silvr uncertainty`: the perturbation-field Laplace pass over a trained field (paper §Epistemic
+//! uncertainty), its read-out into the exported points and held-out views, the default filter, and, with
+//! ground truth, sparsification curves, AUSE and plots.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use silvr_core::eval::{self, metrics::GeometryOptions, plot};
+use silvr_core::pointcloud::{read_ply, write_ply, PointCloud};
+use silvr_core::train::checkpoint::Checkpoint;
+use silvr_core::train::data::{LoadOptions, TrainData};
+use silvr_core::train::Trainer;
+use silvr_core::uncertainty::{self, sparsify, Fisher, Modality, UncertaintyConfig};
+
+use crate::train::backend_for;
+
+/// The PLY fields the read-out writes (log10 posterior std, metres).
+pub const FIELDS: [(&str, Modality); 3] = [
+    ("log_std_colour", Modality::Colour),
+    ("log_std_depth", Modality::Depth),
+    ("log_std_combined", Modality::Combined),
+];
+
+/// Filtering rule (documented, not tuned per scene): drop a point whose combined log10 std exceeds the
+/// median over the exported points by more than `FILTER_DECADES`, i.e. whose posterior standard deviation
+/// is over 10^FILTER_DECADES times the typical point's. See [`default_threshold`].
+pub const FILTER_DECADES: f32 = 0.5;
+
+/// The default threshold on `log_std_combined`: median + [`FILTER_DECADES`].
+pub fn default_threshold(values: &[f32]) -> f32 {
+    let mut v: Vec<f32> = values.iter().cloned().filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return f32::INFINITY;
+    }
+    v.sort_by(f32::total_cmp);
+    v[v.len() / 2] + FILTER_DECADES
+}
+
+pub struct UncertaintyArgs {
+    pub model_dir: PathBuf,
+    pub dataset: Option<PathBuf>,
+    pub backend: String,
+    pub config: UncertaintyConfig,
+    pub quiet: bool,
+}
+
+/// What the pass produced.
+pub struct UncertaintySummary {
+    pub seconds: f64,
+    pub fisher_path: PathBuf,
+    pub points: Option<PathBuf>,
+    pub filtered: Option<PathBuf>,
+    pub threshold: f32,
+    pub kept: usize,
+    pub total: usize,
+    pub rays: u64,
+    pub lidar_rays: u64,
+}
+
+/// `silvr uncertainty MODEL_DIR`: loads `checkpoint.ckpt` (and the dataset recorded in `train.json`, or
+/// `--dataset`), runs the pass and annotates the folder's outputs.
+pub fn run(a: &UncertaintyArgs) -> Result<UncertaintySummary> {
+    let ckpt = a.model_dir.join("checkpoint.ckpt");
+    let ck = Checkpoint::load(&ckpt)?;
+    let dataset = match &a.dataset {
+        Some(d) => d.clone(),
+        None => dataset_of(&a.model_dir)?,
+    };
+    let data = TrainData::load(
+        &dataset,
+        &LoadOptions {
+            downscale: 1,
+            skip_lidar: false,
+        },
+    )?;
+    let (engine, adapter) = backend_for(&a.backend)?;
+    if !a.quiet {
+        eprintln!("uncertainty on {adapter}");
+    }
+    let mut trainer = Trainer::resume(data, ck, engine)?;
+    annotate(&mut trainer, &a.config, &a.model_dir, a.quiet)
+}
+
+fn dataset_of(dir: &Path) -> Result<PathBuf> {
+    let p = dir.join("train.json");
+    let text = std::fs::read_to_string(&p)
+        .with_context(|| format!("reading {} (or pass --dataset)", p.display()))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", p.display()))?;
+    v["dataset"]
+        .as_str()
+        .map(PathBuf::from)
+        .with_context(|| format!("{} names no dataset; pass --dataset", p.display()))
+}
+
+/// Runs the pass on a live trainer and writes into `dir`: `uncertainty.bin` (the Fisher diagonals),
+/// the read-out as fields of `points.ply` (when the folder has one), `points_filtered.ply` (default
+/// threshold) and `renders/*_uncertainty.png` for the first held-out view.
+pub fn annotate(
+    trainer: &mut Trainer,
+    config: &UncertaintyConfig,
+    dir: &Path,
+    quiet: bool,
+) -> Result<UncertaintySummary> {
+    let t0 = Instant::now();
+    let mut last = Instant::now();
+    let fisher = pollster::block_on(uncertainty::compute_fisher(trainer, config, |d, n| {
+        if !quiet && (last.elapsed().as_secs_f64() > 5.0 || d == n) {
+            last = Instant::now();
+            eprintln!(
+                "uncertainty batch {d}/{n} ({:.1} s)",
+                t0.elapsed().as_secs_f64()
+            );
+        }
+    }))?;
+    let seconds = t0.elapsed().as_secs_f64();
+    let fisher_path = dir.join("uncertainty.bin");
+    write(&fisher_path, &fisher.to_bytes())?;
+    let frame = trainer.data.frame;
+    let points_path = dir.join("points.ply");
+    let (mut points, mut filtered, mut threshold, mut kept, mut total) =
+        (None, None, f32::INFINITY, 0, 0);
+    if points_path.is_file() {
+        let mut cloud = read_ply(&points_path)?;
+        annotate_cloud(&fisher, &frame, &mut cloud);
+        write_ply_atomic(&points_path, &cloud)?;
+        let comb = cloud
+            .scalar("log_std_combined")
+            .expect("annotated above")
+            .to_vec();
+        threshold = default_threshold(&comb);
+        let f = filter(&cloud, "log_std_combined", threshold);
+        kept = f.len();
+        total = cloud.len();
+        let fp = dir.join("points_filtered.ply");
+        write_ply_atomic(&fp, &f)?;
+        points = Some(points_path);
+        filtered = Some(fp);
+    }
+    if let Some(&i) = trainer.data.val.first() {
+        let png = uncertainty_image(trainer, &fisher, i)?;
+        let renders = dir.join("renders");
+        std::fs::create_dir_all(&renders)?;
+        let stem = trainer.data.images[i]
+            .name
+            .replace(['/', '\\'], "_")
+            .trim_end_matches(".png")
+            .trim_end_matches(".jpg")
+            .to_string();
+        write(&renders.join(format!("{stem}_uncertainty.png")), &png)?;
+    }
+    if !quiet {
+        eprintln!(
+            "uncertainty: {} rays ({} lidar) in {seconds:.1} s; kept {kept}/{total} points (log10 std ≤ {threshold:.2})",
+            fisher.rays, fisher.lidar_rays
+        );
+    }
+    Ok(UncertaintySummary {
+        seconds,
+        fisher_path,
+        points,
+        filtered,
+        threshold,
+        kept,
+        total,
+        rays: fisher.rays,
+        lidar_rays: fisher.lidar_rays,
+    })
+}
+
+/// Adds the three read-out fields to a cloud in the dataset's metric frame.
+pub fn annotate_cloud(
+    fisher: &Fisher,
+    frame: &silvr_core::train::data::SceneFrame,
+    cloud: &mut PointCloud,
+) {
+    let scene: Vec<[f32; 3]> = cloud
+        .positions
+        .iter()
+        .map(|&p| frame.to_scene(p).as_vec3().to_array())
+        .collect();
+    let u = uncertainty::read_out(fisher, &scene, frame.scale);
+    cloud.set_scalar("log_std_colour", u.colour);
+    cloud.set_scalar("log_std_depth", u.depth);
+    cloud.set_scalar("log_std_combined", u.combined);
+}
+
+/// The points whose `field` is at most `threshold`.
+pub fn filter(cloud: &PointCloud, field: &str, threshold: f32) -> PointCloud {
+    let Some(v) = cloud.scalar(field) else {
+        return cloud.clone();
+    };
+    let keep: Vec<usize> = (0..v.len()).filter(|&i| v[i] <= threshold).collect();
+    cloud.select(&keep)
+}
+
+/// Per-pixel combined uncertainty of a held-out view, read out at each pixel's expected-depth point,
+/// as a greyscale PNG (black = certain, white = the prior), with the range in the file name's JSON.
+fn uncertainty_image(trainer: &mut Trainer, fisher: &Fisher, i: usize) -> Result<Vec<u8>> {
+    let v = pollster::block_on(trainer.render_view(i, false))?;
+    let (rays, _) = trainer.view_rays(i);
+    let scale = trainer.data.frame.scale as f32;
+    let pts: Vec<[f32; 3]> = rays
+        .iter()
+        .zip(&v.depth_m)
+        .map(|(r, &d)| {
+            let t = d * scale;
+            [0, 1, 2].map(|k| r.origin[k] + r.dir[k] * t)
+        })
+        .collect();
+    let u = uncertainty::read_out(fisher, &pts, trainer.data.frame.scale).combined;
+    let lo = u
+        .iter()
+        .cloned()
+        .filter(|x| x.is_finite())
+        .fold(f32::INFINITY, f32::min);
+    let hi = fisher.prior_log_std() - (trainer.data.frame.scale.log10() as f32);
+    let img = image::GrayImage::from_fn(v.width, v.height, |x, y| {
+        let k = (y * v.width + x) as usize;
+        if !v.valid[k] {
+            return image::Luma([0]);
+        }
+        let s = ((u[k] - lo) / (hi - lo).max(1e-6)).clamp(0.0, 1.0);
+        image::Luma([(s * 255.0).round() as u8])
+    });
+    let mut out = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Png)
+        .context("encoding the uncertainty image")?;
+    Ok(out)
+}
+
+/// Sparsification curves, AUSE (per modality, and a random ordering's), plots and the filtered cloud's
+/// geometry, against the ground truth in `gt_dir`. Writes `sparsification.json` and PNG plots into
+/// `dir`; returns the report's `uncertainty` block.
+pub fn evaluate(
+    dir: &Path,
+    gt_dir: &Path,
+    summary: &UncertaintySummary,
+) -> Result<serde_json::Value> {
+    let points = summary
+        .points
+        .as_ref()
+        .context("the uncertainty pass found no points.ply to evaluate")?;
+    let opts = GeometryOptions::default();
+    let ev = eval::evaluate_files_full(points, gt_dir, &opts)?;
+    let errors = &ev.rec_to_gt;
+    let mut curves = serde_json::Map::new();
+    let mut series_data = Vec::new();
+    let mut out = serde_json::json!({});
+    for (field, m) in FIELDS {
+        let u = ev
+            .reconstruction
+            .scalar(field)
+            .with_context(|| format!("{} lost its {field} field", points.display()))?;
+        let s = sparsify::sparsification(errors, u)
+            .context("no evaluated points for the sparsification")?;
+        out[format!("ause_{}", m.name())] = s.ause.into();
+        curves.insert(m.name().into(), serde_json::to_value(&s)?);
+        series_data.push((m.name(), s));
+        // Error against uncertainty.
+        let uu: Vec<f64> = u.iter().map(|&v| v as f64).collect();
+        let img = plot::density_chart(
+            &format!("error vs {} uncertainty", m.name()),
+            "log10 std (m)",
+            "distance to GT (m)",
+            &uu,
+            errors,
+        );
+        write(
+            &dir.join(format!("error_vs_{}.png", m.name())),
+            &plot::png_bytes(&img),
+        )?;
+    }
+    let random = sparsify::random_ause(errors, 5, 17);
+    out["ause_random"] = random.into();
+    let fr = series_data[0].1.fractions.clone();
+    let mut series = vec![plot::Series {
+        name: "oracle",
+        x: &fr,
+        y: &series_data[0].1.oracle,
+        colour: plot::PALETTE[0],
+    }];
+    for (k, (name, s)) in series_data.iter().enumerate() {
+        series.push(plot::Series {
+            name,
+            x: &fr,
+            y: &s.uncertainty,
+            colour: plot::PALETTE[1 + k],
+        });
+    }
+    let img = plot::line_chart(
+        "sparsification (points)",
+        "fraction of points removed (most uncertain first)",
+        "mean distance to GT (normalised)",
+        &series,
+    );
+    write(&dir.join("sparsification.png"), &plot::png_bytes(&img))?;
+    let sp = serde_json::json!({
+        "error": "distance to ground truth (m)",
+        "points_evaluated": errors.len(),
+        "curves": curves,
+        "ause_random": random,
+    });
+    write(
+        &dir.join("sparsification.json"),
+        serde_json::to_string_pretty(&sp)?.as_bytes(),
+    )?;
+    if let Some(f) = &summary.filtered {
+        let fe = eval::evaluate_files(f, gt_dir, &opts)?;
+        let mut g = crate::report_json(&fe);
+        if let Some(o) = g.as_object_mut() {
+            o.insert(
+                "threshold_log_std_combined".into(),
+                summary.threshold.into(),
+            );
+            o.insert("kept_points".into(), summary.kept.into());
+            o.insert("total_points".into(), summary.total.into());
+        }
+        out["filtered"] = g;
+    }
+    let fisher = Fisher::from_bytes(
+        &std::fs::read(&summary.fisher_path)
+            .with_context(|| format!("reading {}", summary.fisher_path.display()))?,
+        &summary.fisher_path.display().to_string(),
+    )?;
+    if let Some(v) = by_label(gt_dir, &fisher)? {
+        out["by_label"] = v;
+    }
+    out["seconds"] = summary.seconds.into();
+    out["file"] = summary.fisher_path.display().to_string().into();
+    out["rays"] = summary.rays.into();
+    out["lidar_rays"] = summary.lidar_rays.into();
+    out["plots"] = serde_json::json!([
+        "sparsification.png",
+        "error_vs_colour.png",
+        "error_vs_depth.png",
+        "error_vs_combined.png"
+    ]);
+    Ok(out)
+}
+
+/// Mean read-out per semantic label at the exact surface points of the training views (synthetic
+/// datasets: `gt/semantic` and `gt/depth` beside `images/`), plus points 5 m under the visible surfaces,
+/// which no ray reaches (they should read the prior). `None` for datasets without that ground truth.
+pub fn by_label(dataset: &Path, fisher: &Fisher) -> Result<Option<serde_json::Value>> {
+    use silvr_core::synthetic::world::Label;
+    let data = TrainData::load(
+        dataset,
+        &LoadOptions {
+            downscale: 1,
+            skip_lidar: true,
+        },
+    )?;
+    let scale = data.frame.scale as f32;
+    let mut per_label: Vec<Vec<[f32; 3]>> = vec![Vec::new(); Label::ALL.len()];
+    let mut under = Vec::new();
+    for &i in &data.train {
+        let name = &data.images[i].name;
+        let Some(rest) = name.strip_prefix("images/") else {
+            return Ok(None);
+        };
+        let sem = data.root.join("gt/semantic").join(rest);
+        let dep = data.root.join("gt/depth").join(rest);
+        if !(sem.is_file() && dep.is_file()) {
+            return Ok(None);
+        }
+        let sem = image::open(&sem)
+            .with_context(|| format!("reading {}", sem.display()))?
+            .to_luma8();
+        let dep = image::open(&dep)
+            .with_context(|| format!("reading {}", dep.display()))?
+            .to_luma16();
+        let (w, h) = sem.dimensions();
+        for y in (0..h).step_by(3) {
+            for x in (0..w).step_by(3) {
+                let label = sem.get_pixel(x, y).0[0] as usize;
+                let range = dep.get_pixel(x, y).0[0];
+                if label == Label::Sky as usize
+                    || label >= per_label.len()
+                    || range == 0
+                    || range == u16::MAX
+                {
+                    continue;
+                }
+                let Some((o, d)) = data.ray(i, x, y) else {
+                    continue;
+                };
+                let t = range as f32 / 256.0 * scale;
+                per_label[label].push([0, 1, 2].map(|k| o[k] + d[k] * t));
+                if label == Label::Road as usize {
+                    let mut p = [0, 1, 2].map(|k| o[k] + d[k] * t);
+                    // 5 m below, in the scene frame (z up, as the world).
+                    p[2] -= 5.0 * scale;
+                    under.push(p);
+                }
+            }
+        }
+    }
+    let mean = |v: &[f32]| v.iter().map(|&x| x as f64).sum::<f64>() / v.len().max(1) as f64;
+    let summary = |pts: &[[f32; 3]]| {
+        let u = uncertainty::read_out(fisher, pts, data.frame.scale);
+        serde_json::json!({
+            "points": pts.len(),
+            "colour": mean(&u.colour),
+            "depth": mean(&u.depth),
+            "combined": mean(&u.combined),
+        })
+    };
+    let mut out = serde_json::json!({});
+    for l in Label::ALL {
+        let pts = &per_label[l as usize];
+        if !pts.is_empty() {
+            out[l.name()] = summary(pts);
+        }
+    }
+    out["under_road_5m"] = summary(&under);
+    out["prior"] = (fisher.prior_log_std() as f64 - data.frame.scale.log10()).into();
+    Ok(Some(out))
+}
+
+fn write(path: &Path, bytes: &[u8]) -> Result<()> {
+    silvr_core::dataset::write_atomic(path, bytes)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+fn write_ply_atomic(path: &Path, cloud: &PointCloud) -> Result<()> {
+    write_ply(path, cloud).with_context(|| format!("writing {}", path.display()))
+}
