@@ -306,7 +306,7 @@ impl CdrWriter {
     }
 
     pub fn align(&mut self, n: usize) {
-        while self.body_len() % n != 0 {
+        while !self.body_len().is_multiple_of(n) {
             self.buf.push(0);
         }
     }

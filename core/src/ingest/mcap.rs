@@ -52,8 +52,9 @@ pub enum BagError {
         index: u64,
         topic: String,
         log_time: u64,
+        /// Boxed to keep `Result<_, BagError>` small.
         #[source]
-        source: DecodeError,
+        source: Box<DecodeError>,
     },
 }
 
@@ -232,7 +233,7 @@ impl BagReader {
             index: msg.index,
             topic: msg.topic().to_string(),
             log_time: msg.log_time(),
-            source,
+            source: Box::new(source),
         }
     }
 }
@@ -348,7 +349,7 @@ pub fn summarize(path: &Path) -> Result<BagSummary, BagError> {
                         index: msg.index,
                         topic: msg.topic().to_string(),
                         log_time: t,
-                        source: e,
+                        source: Box::new(e),
                     };
                     s.first_errors.push(e.to_string());
                 }

@@ -759,10 +759,9 @@ fn demosaic(
             for c in 0..3 {
                 px[c] = if c == own {
                     raw(x, y)
-                } else if cnt[c] > 0 {
-                    ((sum[c] + cnt[c] / 2) / cnt[c]) as u8
                 } else {
-                    0
+                    // A 3×3 window always holds every channel unless the image is 1 pixel wide/high.
+                    (sum[c] + cnt[c] / 2).checked_div(cnt[c]).unwrap_or(0) as u8
                 };
             }
             out.push(px);
@@ -1099,18 +1098,19 @@ impl CameraInfo {
 // Dispatch
 // ---------------------------------------------------------------------------------------------------
 
-/// A decoded message of a type the ingest understands.
+/// A decoded message of a type the ingest understands (the large fixed-size ones boxed, so the enum
+/// stays small when iterating a bag).
 #[derive(Clone, Debug, PartialEq)]
 pub enum RosMessage<'a> {
     PointCloud2(PointCloud2<'a>),
     Image(Image<'a>),
     CompressedImage(CompressedImage<'a>),
-    CameraInfo(CameraInfo),
+    CameraInfo(Box<CameraInfo>),
     Tf(TfMessage),
-    Odometry(Odometry),
+    Odometry(Box<Odometry>),
     Path(Path),
     PoseStamped(PoseStamped),
-    PoseWithCovarianceStamped(PoseWithCovarianceStamped),
+    PoseWithCovarianceStamped(Box<PoseWithCovarianceStamped>),
 }
 
 /// The canonical ROS 2 name (`pkg/msg/Type`) of a schema name, accepting the ROS 1 spelling `pkg/Type`.
@@ -1149,14 +1149,13 @@ pub fn decode<'a>(
         PointCloud2::MSG => PointCloud2::decode(payload).map(RosMessage::PointCloud2),
         Image::MSG => Image::decode(payload).map(RosMessage::Image),
         CompressedImage::MSG => CompressedImage::decode(payload).map(RosMessage::CompressedImage),
-        CameraInfo::MSG => CameraInfo::decode(payload).map(RosMessage::CameraInfo),
+        CameraInfo::MSG => CameraInfo::decode(payload).map(|m| RosMessage::CameraInfo(Box::new(m))),
         TfMessage::MSG => TfMessage::decode(payload).map(RosMessage::Tf),
-        Odometry::MSG => Odometry::decode(payload).map(RosMessage::Odometry),
+        Odometry::MSG => Odometry::decode(payload).map(|m| RosMessage::Odometry(Box::new(m))),
         Path::MSG => Path::decode(payload).map(RosMessage::Path),
         PoseStamped::MSG => PoseStamped::decode(payload).map(RosMessage::PoseStamped),
-        PoseWithCovarianceStamped::MSG => {
-            PoseWithCovarianceStamped::decode(payload).map(RosMessage::PoseWithCovarianceStamped)
-        }
+        PoseWithCovarianceStamped::MSG => PoseWithCovarianceStamped::decode(payload)
+            .map(|m| RosMessage::PoseWithCovarianceStamped(Box::new(m))),
         _ => return None,
     })
 }
