@@ -87,8 +87,13 @@ impl Time {
         decode_with(Self::MSG, payload, Self::read)
     }
 
+    /// Little endian (CDR_LE), as ROS 2 writes.
     pub fn encode(&self) -> Vec<u8> {
-        let mut w = CdrWriter::new();
+        self.encode_with(Endian::Little)
+    }
+
+    pub fn encode_with(&self, endian: Endian) -> Vec<u8> {
+        let mut w = CdrWriter::with_endian(endian);
         self.write(&mut w);
         w.finish()
     }
@@ -120,8 +125,13 @@ impl Header {
         decode_with(Self::MSG, payload, Self::read)
     }
 
+    /// Little endian (CDR_LE), as ROS 2 writes.
     pub fn encode(&self) -> Vec<u8> {
-        let mut w = CdrWriter::new();
+        self.encode_with(Endian::Little)
+    }
+
+    pub fn encode_with(&self, endian: Endian) -> Vec<u8> {
+        let mut w = CdrWriter::with_endian(endian);
         self.write(&mut w);
         w.finish()
     }
@@ -184,8 +194,13 @@ impl PoseStamped {
         decode_with(Self::MSG, payload, Self::read)
     }
 
+    /// Little endian (CDR_LE), as ROS 2 writes.
     pub fn encode(&self) -> Vec<u8> {
-        let mut w = CdrWriter::new();
+        self.encode_with(Endian::Little)
+    }
+
+    pub fn encode_with(&self, endian: Endian) -> Vec<u8> {
+        let mut w = CdrWriter::with_endian(endian);
         self.write(&mut w);
         w.finish()
     }
@@ -213,8 +228,13 @@ impl PoseWithCovarianceStamped {
         })
     }
 
+    /// Little endian (CDR_LE), as ROS 2 writes.
     pub fn encode(&self) -> Vec<u8> {
-        let mut w = CdrWriter::new();
+        self.encode_with(Endian::Little)
+    }
+
+    pub fn encode_with(&self, endian: Endian) -> Vec<u8> {
+        let mut w = CdrWriter::with_endian(endian);
         self.header.write(&mut w);
         write_pose(&mut w, &self.pose);
         w.f64_array(&self.covariance);
@@ -256,8 +276,13 @@ impl TfMessage {
         })
     }
 
+    /// Little endian (CDR_LE), as ROS 2 writes.
     pub fn encode(&self) -> Vec<u8> {
-        let mut w = CdrWriter::new();
+        self.encode_with(Endian::Little)
+    }
+
+    pub fn encode_with(&self, endian: Endian) -> Vec<u8> {
+        let mut w = CdrWriter::with_endian(endian);
         w.seq_len(self.transforms.len());
         for t in &self.transforms {
             t.header.write(&mut w);
@@ -299,8 +324,13 @@ impl Odometry {
         })
     }
 
+    /// Little endian (CDR_LE), as ROS 2 writes.
     pub fn encode(&self) -> Vec<u8> {
-        let mut w = CdrWriter::new();
+        self.encode_with(Endian::Little)
+    }
+
+    pub fn encode_with(&self, endian: Endian) -> Vec<u8> {
+        let mut w = CdrWriter::with_endian(endian);
         self.header.write(&mut w);
         w.string(&self.child_frame_id);
         write_pose(&mut w, &self.pose);
@@ -335,8 +365,13 @@ impl Path {
         })
     }
 
+    /// Little endian (CDR_LE), as ROS 2 writes.
     pub fn encode(&self) -> Vec<u8> {
-        let mut w = CdrWriter::new();
+        self.encode_with(Endian::Little)
+    }
+
+    pub fn encode_with(&self, endian: Endian) -> Vec<u8> {
+        let mut w = CdrWriter::with_endian(endian);
         self.header.write(&mut w);
         w.seq_len(self.poses.len());
         for p in &self.poses {
@@ -890,8 +925,13 @@ impl<'a> CompressedImage<'a> {
         })
     }
 
+    /// Little endian (CDR_LE), as ROS 2 writes.
     pub fn encode(&self) -> Vec<u8> {
-        let mut w = CdrWriter::new();
+        self.encode_with(Endian::Little)
+    }
+
+    pub fn encode_with(&self, endian: Endian) -> Vec<u8> {
+        let mut w = CdrWriter::with_endian(endian);
         self.header.write(&mut w);
         w.string(&self.format).byte_seq(self.data);
         w.finish()

@@ -36,6 +36,7 @@ fn header_round_trip_and_layout() {
     let h = header(1_700_000_000, 123_456_789, "base_link");
     let b = h.encode();
     assert_eq!(Header::decode(&b).unwrap(), h);
+    assert_eq!(Header::decode(&h.encode_with(Endian::Big)).unwrap(), h);
     // sec@0, nanosec@4, frame_id length@8 (10 incl. NUL), text@12.
     assert_eq!(&b[4..8], &1_700_000_000i32.to_le_bytes());
     assert_eq!(&b[8..12], &123_456_789u32.to_le_bytes());
@@ -90,9 +91,11 @@ fn tf_odometry_path_pose_round_trips() {
             },
         ],
     };
-    let b = tf.encode();
-    assert_eq!(TfMessage::decode(&b).unwrap(), tf);
-    all_prefixes_fail(&b, |b| TfMessage::decode(b).map(drop));
+    for endian in [Endian::Little, Endian::Big] {
+        let b = tf.encode_with(endian);
+        assert_eq!(TfMessage::decode(&b).unwrap(), tf);
+        all_prefixes_fail(&b, |b| TfMessage::decode(b).map(drop));
+    }
 
     let mut cov = [0.0; 36];
     cov.iter_mut()
@@ -107,9 +110,11 @@ fn tf_odometry_path_pose_round_trips() {
         angular: DVec3::new(0.0, 0.0, -0.1),
         twist_covariance: [1.0; 36],
     };
-    let b = odom.encode();
-    assert_eq!(Odometry::decode(&b).unwrap(), odom);
-    all_prefixes_fail(&b, |b| Odometry::decode(b).map(drop));
+    for endian in [Endian::Little, Endian::Big] {
+        let b = odom.encode_with(endian);
+        assert_eq!(Odometry::decode(&b).unwrap(), odom);
+        all_prefixes_fail(&b, |b| Odometry::decode(b).map(drop));
+    }
 
     let path = Path {
         header: header(1, 0, "map"),
@@ -120,23 +125,29 @@ fn tf_odometry_path_pose_round_trips() {
             })
             .collect(),
     };
-    let b = path.encode();
-    assert_eq!(Path::decode(&b).unwrap(), path);
-    all_prefixes_fail(&b, |b| Path::decode(b).map(drop));
+    for endian in [Endian::Little, Endian::Big] {
+        let b = path.encode_with(endian);
+        assert_eq!(Path::decode(&b).unwrap(), path);
+        all_prefixes_fail(&b, |b| Path::decode(b).map(drop));
+    }
 
     let ps = path.poses[2].clone();
-    let b = ps.encode();
-    assert_eq!(PoseStamped::decode(&b).unwrap(), ps);
-    all_prefixes_fail(&b, |b| PoseStamped::decode(b).map(drop));
+    for endian in [Endian::Little, Endian::Big] {
+        let b = ps.encode_with(endian);
+        assert_eq!(PoseStamped::decode(&b).unwrap(), ps);
+        all_prefixes_fail(&b, |b| PoseStamped::decode(b).map(drop));
+    }
 
     let pwc = PoseWithCovarianceStamped {
         header: header(9, 9, "map"),
         pose: pose([1.0, 2.0, 3.0], [0.5, 0.5, 0.5, 0.5]),
         covariance: cov,
     };
-    let b = pwc.encode();
-    assert_eq!(PoseWithCovarianceStamped::decode(&b).unwrap(), pwc);
-    all_prefixes_fail(&b, |b| PoseWithCovarianceStamped::decode(b).map(drop));
+    for endian in [Endian::Little, Endian::Big] {
+        let b = pwc.encode_with(endian);
+        assert_eq!(PoseWithCovarianceStamped::decode(&b).unwrap(), pwc);
+        all_prefixes_fail(&b, |b| PoseWithCovarianceStamped::decode(b).map(drop));
+    }
 }
 
 #[test]
@@ -518,6 +529,10 @@ fn compressed_png_and_jpeg() {
     };
     let bytes = msg.encode();
     all_prefixes_fail(&bytes, |b| CompressedImage::decode(b).map(drop));
+    assert_eq!(
+        CompressedImage::decode(&msg.encode_with(Endian::Big)).unwrap(),
+        msg
+    );
     let back = CompressedImage::decode(&bytes).unwrap();
     assert_eq!(back, msg);
     let rgb = back.to_rgb().unwrap();
