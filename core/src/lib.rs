@@ -20,6 +20,7 @@ pub mod eval;
 pub mod field;
 pub mod geometry;
 pub mod gpu;
+pub mod ingest;
 pub mod lidar;
 pub mod pointcloud;
 pub mod render;

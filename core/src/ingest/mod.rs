@@ -1,0 +1,16 @@
+//! Real data in: ROS 2 bags (MCAP + CDR), their sensor messages, and PCD clouds.
+//!
+//! - [`cdr`]: zero-copy CDR cursor (and a writer for tests and our own bags).
+//! - [`ros`]: hand-written decoders of the message types the ingest uses, with conversion to points with
+//!   per-point time, RGB images and camera models.
+//! - [`mcap`] (native only): walks an MCAP file and dispatches by schema name.
+//! - [`pcd`]: PCL's PCD (ascii, binary, binary_compressed) into a [`crate::pointcloud::PointCloud`].
+//!
+//! Every reader treats its input as untrusted: errors, never panics, and no allocation larger than the
+//! input justifies.
+
+pub mod cdr;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod mcap;
+pub mod pcd;
+pub mod ros;

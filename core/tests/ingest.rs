@@ -1,0 +1,988 @@
+//! Ingest end to end: MCAP bags (the shared conformance files, third-party-encoded fixtures in
+//! `tests/data/ingest/`, bags we write with the `mcap` crate in every chunk/index/compression variant,
+//! and damaged ones) and PCD files (the shared real scan, a pypcd4 file, and our own in every DATA kind).
+//! Tests that need `../shared/data` print a line and pass when it is absent.
+
+use std::collections::BTreeMap;
+use std::io::Cursor;
+use std::path::{Path, PathBuf};
+
+use glam::{DQuat, DVec3};
+use silvr_core::camera::Distortion;
+use silvr_core::geometry::Se3;
+use silvr_core::ingest::mcap::{summarize, BagError, BagReader, Skip};
+use silvr_core::ingest::pcd::{lzf_compress, read_pcd, read_pcd_bytes, PcdError};
+use silvr_core::ingest::ros::{
+    CameraInfo, CompressedImage, Header, Image, Odometry, Path as RosPath, PointCloud2, PointField,
+    PointTimeKind, PoseStamped, RegionOfInterest, RosMessage, TfMessage, Time, TransformStamped,
+};
+
+/// `../shared/data` beside the workspace root, or `None` (with a line saying so).
+fn shared_data(what: &str) -> Option<PathBuf> {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
+    if p.is_dir() {
+        Some(p)
+    } else {
+        println!("skipping {what}: {} is absent", p.display());
+        None
+    }
+}
+
+fn fixture(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/ingest")
+        .join(name)
+}
+
+fn header(sec: i32, nanosec: u32, frame: &str) -> Header {
+    Header {
+        stamp: Time { sec, nanosec },
+        frame_id: frame.into(),
+    }
+}
+
+fn close(a: f64, b: f64, tol: f64) -> bool {
+    (a - b).abs() <= tol
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Shared MCAP conformance files
+// ---------------------------------------------------------------------------------------------------
+
+#[test]
+fn shared_mcaps_read_and_known_types_decode() {
+    let Some(data) = shared_data("shared MCAP fixtures") else {
+        return;
+    };
+    let dir = data.join("formats/mcap");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
+        .collect();
+    files.sort();
+    assert!(files.len() >= 4, "{files:?}");
+    let mut summaries = BTreeMap::new();
+    for f in &files {
+        let s = summarize(f).unwrap_or_else(|e| panic!("{e}"));
+        assert!(s.messages > 0, "{}", f.display());
+        assert_eq!(s.decode_errors, 0, "{}: {:?}", f.display(), s.first_errors);
+        let per_topic: u64 = s.topics.values().map(|t| t.messages).sum();
+        assert_eq!(per_topic, s.messages);
+        let decoded: u64 = s.topics.values().map(|t| t.decoded).sum();
+        let skipped: u64 = s.skipped.values().sum();
+        assert_eq!(decoded + skipped, s.messages, "{}", f.display());
+        summaries.insert(f.file_name().unwrap().to_string_lossy().to_string(), s);
+    }
+
+    let nav = &summaries["nav2_turtlebot.mcap"];
+    let counts: Vec<(&str, u64, u64)> = nav
+        .topics
+        .iter()
+        .map(|(k, t)| (k.as_str(), t.messages, t.decoded))
+        .collect();
+    assert_eq!(
+        counts,
+        vec![
+            ("/amcl_pose", 135, 135),
+            ("/odom", 2639, 2639),
+            ("/tf", 5422, 5422),
+            ("/tf_static", 1, 1)
+        ]
+    );
+    assert!(nav.skipped.is_empty());
+    assert_eq!(nav.topics["/odom"].schema_name, "nav_msgs/msg/Odometry");
+    let (t0, t1) = nav.span.unwrap();
+    assert!(t0 <= 1_778_234_353_382_747_000 && t1 > t0);
+
+    let cdr = &summaries["cdr_test_0.mcap"];
+    assert_eq!(
+        cdr.skipped.get("no decoder for test_msgs/msg/BasicTypes"),
+        Some(&3)
+    );
+    assert_eq!(
+        cdr.skipped.get("no decoder for test_msgs/msg/Arrays"),
+        Some(&4)
+    );
+    let wrong = &summaries["wrong_rmw_test_0.mcap"];
+    assert_eq!(
+        wrong
+            .skipped
+            .get("message encoding 'wrong_format' is not cdr"),
+        Some(&7)
+    );
+    let rewriter = &summaries["rewriter_a_0.mcap"];
+    assert_eq!(rewriter.topics["a_empty"].messages, 100);
+    assert_eq!(rewriter.topics["b_basictypes"].messages, 50);
+}
+
+/// Expected values from the reference Python decoder (mcap 1.x + mcap-ros2-support, which decodes from
+/// the schema text in the file), printed by `scripts/crosscheck_mcap.py` on
+/// `../shared/data/formats/mcap/nav2_turtlebot.mcap`.
+#[test]
+fn nav2_turtlebot_matches_python_decoder() {
+    let Some(data) = shared_data("nav2_turtlebot cross-check") else {
+        return;
+    };
+    let path = data.join("formats/mcap/nav2_turtlebot.mcap");
+    let mut odom = Vec::new();
+    let mut tf = None;
+    let mut tf_static = None;
+    let mut amcl = None;
+    for msg in BagReader::open(&path).unwrap() {
+        let msg = msg.unwrap();
+        let index = msg.index;
+        let log_time = msg.log_time();
+        match msg.decode().unwrap() {
+            Ok(RosMessage::Odometry(o)) if odom.len() <= 100 => odom.push((index, log_time, o)),
+            Ok(RosMessage::Tf(t)) if msg.topic() == "/tf" && tf.is_none() => {
+                tf = Some((index, log_time, t))
+            }
+            Ok(RosMessage::Tf(t)) if msg.topic() == "/tf_static" => tf_static = Some((index, t)),
+            Ok(RosMessage::PoseWithCovarianceStamped(p)) if amcl.is_none() => {
+                amcl = Some((index, p))
+            }
+            _ => {}
+        }
+    }
+
+    // odom_0
+    let (index, log_time, o) = &odom[0];
+    assert_eq!((*index, *log_time), (0, 1_778_234_353_382_747_000));
+    assert_eq!(o.header, header(928, 800_000_000, "odom"));
+    assert_eq!(o.child_frame_id, "base_link");
+    assert_eq!(
+        o.pose.trans,
+        DVec3::new(-2.8019166340612314, 1.0977901491292252, 0.0)
+    );
+    assert_eq!(
+        o.pose.rot,
+        DQuat::from_xyzw(-0.0, 0.0, 0.08457359616958599, -0.9964172353140746)
+    );
+    assert_eq!(o.pose_covariance[0], 0.0);
+    assert_eq!(o.linear, DVec3::ZERO);
+
+    // odom_100: moving, so the twist is non-zero.
+    let (index, log_time, o) = &odom[100];
+    assert_eq!((*index, *log_time), (309, 1_778_234_357_009_234_000));
+    assert_eq!(o.header, header(932, 400_000_000, "odom"));
+    assert_eq!(
+        o.pose.trans,
+        DVec3::new(-2.7975350686182927, 1.0970384416669292, 0.0)
+    );
+    assert_eq!(
+        o.pose.rot,
+        DQuat::from_xyzw(-0.0, 0.0, 0.08509008134296159, -0.9963732624157717)
+    );
+    assert_eq!(o.linear, DVec3::new(0.05810752467626894, 0.0, 0.0));
+    assert_eq!(o.angular.z, -0.012776057890344712);
+
+    // First /tf message: one odom -> base_link transform.
+    let (index, log_time, t) = tf.unwrap();
+    assert_eq!((index, log_time), (1, 1_778_234_353_382_761_000));
+    assert_eq!(t.transforms.len(), 1);
+    let t0 = &t.transforms[0];
+    assert_eq!(t0.header, header(928, 800_000_000, "odom"));
+    assert_eq!(t0.child_frame_id, "base_link");
+    assert_eq!(
+        t0.transform.trans,
+        DVec3::new(-2.8019166340612314, 1.0977901491292252, 0.0)
+    );
+    assert_eq!(
+        t0.transform.rot,
+        DQuat::from_xyzw(-0.0, 0.0, 0.08457359616958599, -0.9964172353140746)
+    );
+
+    // /tf_static: 29 transforms; spot-check a rotated one and the last.
+    let (index, ts) = tf_static.unwrap();
+    assert_eq!(index, 4);
+    assert_eq!(ts.transforms.len(), 29);
+    let bump = &ts.transforms[2];
+    assert_eq!(
+        (bump.header.frame_id.as_str(), bump.child_frame_id.as_str()),
+        ("base_link", "bump_front_left")
+    );
+    assert_eq!(bump.transform.trans, DVec3::new(0.02345, -0.0875, 0.025));
+    assert_eq!(
+        bump.transform.rot,
+        DQuat::from_xyzw(0.0, 0.0, 0.25881891199876106, 0.9659258619541035)
+    );
+    let last = &ts.transforms[28];
+    assert_eq!(
+        (last.header.frame_id.as_str(), last.child_frame_id.as_str()),
+        ("shell_link", "tower_sensor_plate")
+    );
+    assert_eq!(last.transform.trans, DVec3::new(0.0, 0.0, 0.25257));
+
+    // First /amcl_pose.
+    let (index, p) = amcl.unwrap();
+    assert_eq!(index, 22);
+    assert_eq!(p.header.frame_id, "map");
+    assert_eq!(
+        p.pose.trans,
+        DVec3::new(4.36519665396771, 7.579351695734543, 0.0)
+    );
+    assert_eq!(
+        p.pose.rot,
+        DQuat::from_xyzw(0.0, 0.0, 0.08968222067714808, 0.9959704309337779)
+    );
+    assert_eq!(
+        [p.covariance[0], p.covariance[7], p.covariance[35]],
+        [
+            0.028234069455002037,
+            0.022814564407611353,
+            0.01388336421478153
+        ]
+    );
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Third-party-encoded fixture: lz4 chunks, messages serialised by mcap-ros2-support
+// ---------------------------------------------------------------------------------------------------
+
+/// `tests/data/ingest/py_ros2_lz4.mcap`, written by `scripts/make_ingest_fixtures.py`.
+#[test]
+fn python_encoded_lz4_bag_decodes() {
+    let path = fixture("py_ros2_lz4.mcap");
+    let s = summarize(&path).unwrap();
+    assert_eq!(s.messages, 6);
+    assert_eq!(s.decode_errors, 0, "{:?}", s.first_errors);
+    assert!(s.skipped.is_empty());
+    let mut seen = 0;
+    for msg in BagReader::open(&path).unwrap() {
+        let msg = msg.unwrap();
+        assert_eq!(msg.message_encoding(), "cdr");
+        assert_eq!(msg.schema_encoding(), "ros2msg");
+        match msg.decode().unwrap().unwrap() {
+            RosMessage::PointCloud2(pc) => {
+                assert_eq!(msg.topic(), "/hesai/pandar");
+                assert_eq!((pc.point_step, pc.width, pc.fields.len()), (26, 6, 6));
+                let scan = pc.to_scan().unwrap();
+                assert_eq!(scan.frame_id, "hesai_lidar");
+                assert_eq!(scan.time_kind, Some(PointTimeKind::AbsoluteSeconds));
+                assert_eq!(scan.skipped_nonfinite, 1);
+                assert_eq!(scan.positions.len(), 5);
+                // Point 4 (the 4th kept): x = 5, y = -2, z = 0.25, intensity 40, time 0.04 s.
+                assert_eq!(scan.positions[3], DVec3::new(5.0, -2.0, 0.25));
+                assert_eq!(scan.intensities.as_ref().unwrap()[3], 40.0);
+                let t = scan.times.as_ref().unwrap();
+                for (got, k) in t.iter().zip([0, 1, 2, 4, 5]) {
+                    assert!(close(*got, 0.01 * k as f64, 1e-6), "{t:?}");
+                }
+                seen |= 1;
+            }
+            RosMessage::Image(img) => {
+                let rgb = img.to_rgb().unwrap();
+                assert_eq!(
+                    rgb.pixels,
+                    vec![[255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 255]]
+                );
+                seen |= 2;
+            }
+            RosMessage::CompressedImage(ci) => {
+                let rgb = ci.to_rgb().unwrap();
+                assert_eq!((rgb.width, rgb.height), (2, 2));
+                assert_eq!(
+                    rgb.pixels,
+                    vec![[255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 255]]
+                );
+                seen |= 4;
+            }
+            RosMessage::CameraInfo(ci) => {
+                let cam = ci.camera_model().unwrap();
+                assert_eq!((cam.width, cam.height), (720, 540));
+                assert_eq!(
+                    (cam.fx, cam.fy, cam.cx, cam.cy),
+                    (349.1, 349.2, 356.4, 280.3)
+                );
+                assert_eq!(
+                    cam.distortion,
+                    Distortion::Fisheye {
+                        k1: -0.041142,
+                        k2: -0.002422,
+                        k3: 0.0034,
+                        k4: -0.001852
+                    }
+                );
+                seen |= 8;
+            }
+            RosMessage::Tf(tf) => {
+                assert_eq!(tf.transforms.len(), 2);
+                assert_eq!(tf.transforms[1].child_frame_id, "cam0");
+                assert_eq!(
+                    tf.transforms[1].transform.rot,
+                    DQuat::from_xyzw(0.50347, 0.50033, -0.49475, 0.50140)
+                );
+                assert_eq!(
+                    tf.transforms[0].transform.trans,
+                    DVec3::new(0.0, 0.0, 0.124)
+                );
+                seen |= 16;
+            }
+            RosMessage::Path(p) => {
+                assert_eq!(p.poses.len(), 3);
+                assert_eq!(p.poses[2].pose.trans, DVec3::new(2.0, 4.0, 0.0));
+                assert_eq!(p.poses[2].header.stamp.nanosec, 2);
+                seen |= 32;
+            }
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    assert_eq!(seen, 63);
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Bags we write with the mcap crate: every container variant, then damage them
+// ---------------------------------------------------------------------------------------------------
+
+/// The messages of a small bag: (topic, schema name, payload).
+fn sample_messages() -> Vec<(&'static str, &'static str, Vec<u8>)> {
+    let f = |n, o, t| PointField::new(n, o, t);
+    let mut data = Vec::new();
+    for k in 0..50u32 {
+        for v in [k as f32, 1.0, -2.0, 5.0] {
+            data.extend_from_slice(&v.to_le_bytes());
+        }
+        data.extend_from_slice(&(k * 1000).to_le_bytes());
+    }
+    let pc = PointCloud2 {
+        header: header(100, 0, "os_lidar"),
+        height: 1,
+        width: 50,
+        fields: vec![
+            f("x", 0, 7),
+            f("y", 4, 7),
+            f("z", 8, 7),
+            f("intensity", 12, 7),
+            f("t", 16, 6),
+        ],
+        is_bigendian: false,
+        point_step: 20,
+        row_step: 1000,
+        data: &data,
+        is_dense: true,
+    };
+    let pixels = [9u8; 4 * 3 * 3];
+    let img = Image {
+        header: header(100, 1, "cam"),
+        height: 3,
+        width: 4,
+        encoding: "rgb8".into(),
+        is_bigendian: 0,
+        step: 12,
+        data: &pixels,
+    };
+    let png = silvr_core::dataset::png_rgb(2, 1, &[[1, 2, 3], [4, 5, 6]]);
+    let ci = CompressedImage {
+        header: header(100, 2, "cam"),
+        format: "png".into(),
+        data: &png,
+    };
+    let info = CameraInfo {
+        header: header(100, 3, "cam"),
+        height: 3,
+        width: 4,
+        distortion_model: "plumb_bob".into(),
+        d: vec![0.1, 0.0, 0.0, 0.0, 0.0],
+        k: [2.0, 0.0, 1.5, 0.0, 2.0, 1.0, 0.0, 0.0, 1.0],
+        r: [0.0; 9],
+        p: [0.0; 12],
+        binning_x: 0,
+        binning_y: 0,
+        roi: RegionOfInterest::default(),
+    };
+    let pose = |x: f64| Se3 {
+        rot: DQuat::IDENTITY,
+        trans: DVec3::new(x, 0.0, 0.0),
+    };
+    let tf = TfMessage {
+        transforms: vec![TransformStamped {
+            header: header(100, 4, "odom"),
+            child_frame_id: "base_link".into(),
+            transform: pose(1.0),
+        }],
+    };
+    let odom = Odometry {
+        header: header(100, 5, "odom"),
+        child_frame_id: "base_link".into(),
+        pose: pose(2.0),
+        pose_covariance: [0.0; 36],
+        linear: DVec3::X,
+        angular: DVec3::Z,
+        twist_covariance: [0.0; 36],
+    };
+    let ps = PoseStamped {
+        header: header(100, 6, "map"),
+        pose: pose(3.0),
+    };
+    let path = RosPath {
+        header: header(100, 7, "map"),
+        poses: vec![ps.clone(), ps.clone()],
+    };
+    vec![
+        ("/points", PointCloud2::MSG, pc.encode()),
+        ("/image", Image::MSG, img.encode()),
+        ("/image/compressed", CompressedImage::MSG, ci.encode()),
+        ("/camera_info", CameraInfo::MSG, info.encode()),
+        ("/tf", TfMessage::MSG, tf.encode()),
+        ("/odom", Odometry::MSG, odom.encode()),
+        ("/pose", PoseStamped::MSG, ps.encode()),
+        ("/path", RosPath::MSG, path.encode()),
+        ("/imu", "sensor_msgs/msg/Imu", vec![0, 1, 0, 0, 1, 2, 3, 4]),
+    ]
+}
+
+#[derive(Clone, Copy, Debug)]
+enum Variant {
+    Plain,
+    Zstd,
+    Lz4,
+    Unchunked,
+    Unindexed,
+}
+
+/// Writes the sample messages (each `repeat` times) as an MCAP with the ROS 2 profile.
+fn write_bag(variant: Variant, repeat: usize) -> Vec<u8> {
+    let mut opts = mcap::WriteOptions::new()
+        .profile("ros2")
+        .chunk_size(Some(4096))
+        .compression(match variant {
+            Variant::Zstd => Some(mcap::Compression::Zstd),
+            Variant::Lz4 => Some(mcap::Compression::Lz4),
+            _ => None,
+        });
+    match variant {
+        Variant::Unchunked => opts = opts.use_chunks(false),
+        Variant::Unindexed => {
+            opts = opts
+                .emit_summary_records(false)
+                .emit_summary_offsets(false)
+                .emit_statistics(false)
+                .emit_message_indexes(false)
+                .emit_chunk_indexes(false)
+        }
+        _ => {}
+    }
+    let mut out = Cursor::new(Vec::new());
+    {
+        let mut w = opts.create(&mut out).unwrap();
+        let msgs = sample_messages();
+        let mut channels = Vec::new();
+        for (topic, schema, _) in &msgs {
+            let sid = w.add_schema(schema, "ros2msg", b"# schema text").unwrap();
+            channels.push(w.add_channel(sid, topic, "cdr", &BTreeMap::new()).unwrap());
+        }
+        let json = w
+            .add_channel(0, "/diagnostics_json", "json", &BTreeMap::new())
+            .unwrap();
+        let mut seq = 0;
+        for r in 0..repeat {
+            for ((_, _, payload), &channel_id) in msgs.iter().zip(&channels) {
+                seq += 1;
+                let header = mcap::records::MessageHeader {
+                    channel_id,
+                    sequence: seq,
+                    log_time: 1_000_000_000 * (r as u64 + 1) + seq as u64,
+                    publish_time: 0,
+                };
+                w.write_to_known_channel(&header, payload).unwrap();
+            }
+            let header = mcap::records::MessageHeader {
+                channel_id: json,
+                sequence: 0,
+                log_time: 1_000_000_000 * (r as u64 + 1),
+                publish_time: 0,
+            };
+            w.write_to_known_channel(&header, b"{}").unwrap();
+        }
+        w.finish().unwrap();
+    }
+    out.into_inner()
+}
+
+fn temp_file(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, bytes).unwrap();
+    p
+}
+
+#[test]
+fn every_container_variant_round_trips() {
+    let dir = tempfile::tempdir().unwrap();
+    let expected = sample_messages();
+    for variant in [
+        Variant::Plain,
+        Variant::Zstd,
+        Variant::Lz4,
+        Variant::Unchunked,
+        Variant::Unindexed,
+    ] {
+        let bytes = write_bag(variant, 3);
+        let path = temp_file(dir.path(), &format!("{variant:?}.mcap"), &bytes);
+        let mut n = 0;
+        for msg in BagReader::open(&path).unwrap() {
+            let msg = msg.unwrap();
+            n += 1;
+            if msg.topic() == "/diagnostics_json" {
+                assert_eq!(msg.decode().unwrap(), Err(Skip::NotCdr("json".into())));
+                continue;
+            }
+            let (_, schema, payload) = expected.iter().find(|(t, _, _)| *t == msg.topic()).unwrap();
+            assert_eq!(msg.schema_name(), *schema);
+            assert_eq!(msg.data(), &payload[..], "{variant:?} {}", msg.topic());
+            match msg.decode().unwrap() {
+                Ok(RosMessage::PointCloud2(pc)) => {
+                    let scan = pc.to_scan().unwrap();
+                    assert_eq!(scan.positions.len(), 50);
+                    assert_eq!(scan.time_kind, Some(PointTimeKind::RelativeNanos));
+                    assert!(close(scan.times.unwrap()[49], 49e-6, 1e-12));
+                }
+                Ok(RosMessage::Image(img)) => {
+                    assert_eq!(img.to_rgb().unwrap().pixels, vec![[9; 3]; 12])
+                }
+                Ok(RosMessage::CompressedImage(c)) => {
+                    assert_eq!(c.to_rgb().unwrap().pixels, vec![[1, 2, 3], [4, 5, 6]])
+                }
+                Ok(RosMessage::CameraInfo(c)) => assert_eq!(c.camera_model().unwrap().fx, 2.0),
+                Ok(RosMessage::Odometry(o)) => assert_eq!(o.linear, DVec3::X),
+                Ok(RosMessage::Path(p)) => assert_eq!(p.poses.len(), 2),
+                Ok(RosMessage::Tf(t)) => assert_eq!(t.transforms[0].child_frame_id, "base_link"),
+                Ok(RosMessage::PoseStamped(p)) => assert_eq!(p.pose.trans.x, 3.0),
+                Ok(other) => panic!("unexpected {other:?}"),
+                Err(skip) => assert_eq!(skip, Skip::UnknownType("sensor_msgs/msg/Imu".into())),
+            }
+        }
+        assert_eq!(n, 3 * 10, "{variant:?}");
+        let s = summarize(&path).unwrap();
+        assert_eq!(s.messages, 30);
+        assert_eq!(s.decode_errors, 0);
+        assert_eq!(s.topics["/points"].decoded, 3);
+        assert_eq!(s.skipped["no decoder for sensor_msgs/msg/Imu"], 3);
+        assert_eq!(s.skipped["message encoding 'json' is not cdr"], 3);
+        // The 9 CDR messages of each round carry sequence numbers 1..=27 in their log times.
+        assert_eq!(s.span, Some((1_000_000_000, 3_000_000_027)));
+        assert!(close(s.duration(), 2.000000027, 1e-12));
+    }
+}
+
+/// Reads the whole bag; `Err` as soon as the container reports a problem.
+fn read_all(path: &Path) -> Result<usize, BagError> {
+    let mut n = 0;
+    for m in BagReader::open(path)? {
+        m?;
+        n += 1;
+    }
+    Ok(n)
+}
+
+/// (topic, payload) of every message; `Err` as soon as the container reports a problem.
+fn read_payloads(path: &Path) -> Result<Vec<(String, Vec<u8>)>, BagError> {
+    BagReader::open(path)?
+        .map(|m| m.map(|m| (m.topic().to_string(), m.data().to_vec())))
+        .collect()
+}
+
+#[test]
+fn truncated_bags_are_errors_naming_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    for variant in [
+        Variant::Zstd,
+        Variant::Lz4,
+        Variant::Unchunked,
+        Variant::Unindexed,
+    ] {
+        let bytes = write_bag(variant, 1);
+        assert_eq!(
+            read_all(&temp_file(dir.path(), "full.mcap", &bytes)).unwrap(),
+            10
+        );
+        // Every cut must fail; step through the file (all offsets near the ends, every 7th elsewhere).
+        let cuts = (0..bytes.len()).filter(|&n| n < 64 || n + 64 > bytes.len() || n % 7 == 0);
+        for n in cuts {
+            let path = temp_file(dir.path(), "cut.mcap", &bytes[..n]);
+            let e =
+                read_all(&path).expect_err(&format!("{variant:?} cut at {n} of {}", bytes.len()));
+            assert!(e.to_string().contains("cut.mcap"), "{e}");
+        }
+    }
+    let path = temp_file(dir.path(), "cut.mcap", &write_bag(Variant::Zstd, 1)[..300]);
+    let e = summarize(&path).unwrap_err();
+    assert!(e.to_string().contains("truncated"), "{e}");
+}
+
+#[test]
+fn corrupt_chunks_and_non_mcap_are_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = temp_file(
+        dir.path(),
+        "text.mcap",
+        b"this is not an mcap file at all, sorry",
+    );
+    let e = read_all(&path).unwrap_err();
+    assert!(
+        e.to_string().contains("text.mcap") && e.to_string().contains("bad magic"),
+        "{e}"
+    );
+    let e = read_all(&dir.path().join("missing.mcap")).unwrap_err();
+    assert!(
+        matches!(e, BagError::Io { .. }) && e.to_string().contains("missing.mcap"),
+        "{e}"
+    );
+
+    // Flip each byte of the compressed records of every chunk: the chunk CRC (over the uncompressed
+    // records) or the decompressor must catch it.
+    for variant in [Variant::Plain, Variant::Zstd, Variant::Lz4] {
+        let bytes = write_bag(variant, 2);
+        let ranges = chunk_record_ranges(&bytes);
+        assert!(!ranges.is_empty(), "{variant:?} has chunks");
+        let original = read_payloads(&temp_file(dir.path(), "orig.mcap", &bytes)).unwrap();
+        let (mut tries, mut detected) = (0, 0);
+        for at in ranges.into_iter().flatten() {
+            let mut b = bytes.clone();
+            b[at] ^= 0x5a;
+            tries += 1;
+            let path = temp_file(dir.path(), "flip.mcap", &b);
+            match read_payloads(&path) {
+                Err(e) => {
+                    assert!(e.to_string().contains("flip.mcap"), "{e}");
+                    detected += 1;
+                }
+                // A few zstd bits do not change the output (the CRC then matches): the data must be intact.
+                Ok(msgs) => assert_eq!(
+                    msgs, original,
+                    "{variant:?}: flip at {at} changed data silently"
+                ),
+            }
+        }
+        assert!(
+            detected * 100 >= tries * 95,
+            "{variant:?}: {detected}/{tries} flips detected"
+        );
+    }
+}
+
+#[test]
+fn inconsistent_record_in_crc_less_chunk_is_an_error() {
+    // Without a chunk CRC nothing catches a record that claims more bytes than its chunk holds; the
+    // mcap crate then overflows (a panic in debug builds), which the reader must turn into an error.
+    let dir = tempfile::tempdir().unwrap();
+    let mut out = Cursor::new(Vec::new());
+    {
+        let mut w = mcap::WriteOptions::new()
+            .compression(None)
+            .calculate_chunk_crcs(false)
+            .create(&mut out)
+            .unwrap();
+        let ch = w.add_channel(0, "/x", "cdr", &BTreeMap::new()).unwrap();
+        for seq in 0..3 {
+            let hdr = mcap::records::MessageHeader {
+                channel_id: ch,
+                sequence: seq,
+                log_time: seq as u64,
+                publish_time: 0,
+            };
+            w.write_to_known_channel(&hdr, &[0, 1, 0, 0, 7, 7, 7, 7])
+                .unwrap();
+        }
+        w.finish().unwrap();
+    }
+    let bytes = out.into_inner();
+    let ranges = chunk_record_ranges(&bytes);
+    let records = ranges[0].clone();
+    // Records inside the chunk: opcode u8 + length u64. Enlarge the last one's length.
+    let mut pos = records.start;
+    let mut last = pos;
+    while pos < records.end {
+        last = pos;
+        pos += 9 + u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap()) as usize;
+    }
+    let mut b = bytes.clone();
+    b[last + 1] = b[last + 1].wrapping_add(100);
+    let path = temp_file(dir.path(), "nocrc.mcap", &b);
+    let e = read_all(&path).unwrap_err();
+    println!("{e}");
+    assert!(e.to_string().contains("nocrc.mcap"), "{e}");
+    assert_eq!(
+        read_all(&temp_file(dir.path(), "ok.mcap", &bytes)).unwrap(),
+        3
+    );
+}
+
+/// Byte ranges of the (compressed) records inside each Chunk record of an MCAP file, from its layout:
+/// magic (8), then records of opcode u8, length u64, content; a Chunk (opcode 6) holds start/end time,
+/// uncompressed size (u64 each), uncompressed CRC (u32), compression (u32-length string), records
+/// length (u64), records.
+fn chunk_record_ranges(bytes: &[u8]) -> Vec<std::ops::Range<usize>> {
+    let u64_at = |o: usize| u64::from_le_bytes(bytes[o..o + 8].try_into().unwrap()) as usize;
+    let u32_at = |o: usize| u32::from_le_bytes(bytes[o..o + 4].try_into().unwrap()) as usize;
+    let mut out = Vec::new();
+    let mut pos = 8;
+    while pos + 9 <= bytes.len() - 8 {
+        let (op, len) = (bytes[pos], u64_at(pos + 1));
+        let content = pos + 9;
+        if op == 0x06 {
+            let comp_len = u32_at(content + 28);
+            let rec_len_at = content + 32 + comp_len;
+            let start = rec_len_at + 8;
+            out.push(start..start + u64_at(rec_len_at));
+        }
+        pos = content + len;
+    }
+    out
+}
+
+#[test]
+fn a_bad_payload_in_a_good_bag_is_counted_with_context() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut out = Cursor::new(Vec::new());
+    {
+        let mut w = mcap::WriteOptions::new()
+            .profile("ros2")
+            .create(&mut out)
+            .unwrap();
+        let sid = w.add_schema(Odometry::MSG, "ros2msg", b"").unwrap();
+        let ch = w
+            .add_channel(sid, "/odom", "cdr", &BTreeMap::new())
+            .unwrap();
+        let hdr = mcap::records::MessageHeader {
+            channel_id: ch,
+            sequence: 1,
+            log_time: 42,
+            publish_time: 42,
+        };
+        w.write_to_known_channel(&hdr, &[0, 1, 0, 0, 1, 2]).unwrap();
+        w.finish().unwrap();
+    }
+    let path = temp_file(dir.path(), "bad_payload.mcap", out.get_ref());
+    let s = summarize(&path).unwrap();
+    assert_eq!((s.messages, s.decode_errors), (1, 1));
+    let e = &s.first_errors[0];
+    assert!(
+        e.contains("bad_payload.mcap")
+            && e.contains("/odom")
+            && e.contains("nav_msgs/msg/Odometry: truncated"),
+        "{e}"
+    );
+}
+
+// ---------------------------------------------------------------------------------------------------
+// PCD
+// ---------------------------------------------------------------------------------------------------
+
+#[test]
+fn shared_pcd_scan_reads() {
+    let Some(data) = shared_data("shared PCD scan") else {
+        return;
+    };
+    let pcd = read_pcd(&data.join("formats/pcd_camera_pair/0.pcd")).unwrap();
+    assert_eq!(pcd.fields, ["x", "y", "z", "intensity"]);
+    assert_eq!((pcd.width, pcd.height), (78238, 1));
+    assert_eq!(pcd.viewpoint, Se3::IDENTITY);
+    let cloud = &pcd.cloud;
+    assert_eq!(cloud.len(), 78238);
+    let finite = cloud.len() - cloud.count_nonfinite();
+    assert!(finite > 70_000, "{finite} finite points");
+    assert_eq!(
+        cloud.positions[0],
+        DVec3::new(21.647913, 0.19822195, -1.8524752)
+    );
+    assert_eq!(cloud.scalar("intensity").unwrap()[0], 11.0);
+    // A car-mounted scan: ranges of a few to ~200 m, most points within 100 m.
+    let (lo, hi) = cloud.bounds().unwrap();
+    assert!(hi.x - lo.x > 20.0 && hi.x - lo.x < 500.0, "{lo} {hi}");
+}
+
+/// `tests/data/ingest/pypcd4_binary_compressed.pcd` from `scripts/make_ingest_fixtures.py`.
+#[test]
+fn pypcd4_compressed_pcd_reads() {
+    let pcd = read_pcd(&fixture("pypcd4_binary_compressed.pcd")).unwrap();
+    assert_eq!(pcd.fields, ["x", "y", "z", "intensity", "ring"]);
+    let c = &pcd.cloud;
+    assert_eq!(c.len(), 40);
+    assert_eq!(c.count_nonfinite(), 1);
+    assert!(c.positions[5].x.is_nan());
+    for k in (0..40).filter(|&k| k != 5) {
+        let kf = k as f64;
+        assert_eq!(
+            c.positions[k],
+            DVec3::new(kf * 0.5, -kf * 0.25, (k % 7) as f64),
+            "point {k}"
+        );
+        assert_eq!(c.scalar("intensity").unwrap()[k], 3.0 * kf as f32);
+    }
+}
+
+/// A cloud written by this test in each DATA kind, with mixed field types and a count > 1 field.
+fn pcd_bytes(kind: &str, n: usize, viewpoint: &str) -> Vec<u8> {
+    let header = format!(
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x normal y z intensity rgb\n\
+         SIZE 4 4 8 2 1 4\nTYPE F F F I U U\nCOUNT 1 3 1 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT {viewpoint}\n\
+         POINTS {n}\nDATA {kind}\n"
+    );
+    let value = |k: usize| {
+        (
+            k as f32 * 0.5,
+            [1.0f32, 2.0, 3.0],
+            -(k as f64) * 1.25,
+            k as i16 - 3,
+            (k * 2) as u8,
+            0x00102030u32 + k as u32,
+        )
+    };
+    let mut out = header.into_bytes();
+    match kind {
+        "ascii" => {
+            for k in 0..n {
+                let (x, nn, y, z, i, rgb) = value(k);
+                out.extend_from_slice(
+                    format!("{x} {} {} {} {y} {z} {i} {rgb}\n", nn[0], nn[1], nn[2]).as_bytes(),
+                );
+            }
+        }
+        "binary" => {
+            for k in 0..n {
+                let (x, nn, y, z, i, rgb) = value(k);
+                out.extend_from_slice(&x.to_le_bytes());
+                nn.iter()
+                    .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+                out.extend_from_slice(&y.to_le_bytes());
+                out.extend_from_slice(&z.to_le_bytes());
+                out.push(i);
+                out.extend_from_slice(&rgb.to_le_bytes());
+            }
+        }
+        _ => {
+            // Field-major: all x, all normals, all y, ...
+            let mut raw = Vec::new();
+            (0..n).for_each(|k| raw.extend_from_slice(&value(k).0.to_le_bytes()));
+            (0..n).for_each(|k| {
+                value(k)
+                    .1
+                    .iter()
+                    .for_each(|v| raw.extend_from_slice(&v.to_le_bytes()))
+            });
+            (0..n).for_each(|k| raw.extend_from_slice(&value(k).2.to_le_bytes()));
+            (0..n).for_each(|k| raw.extend_from_slice(&value(k).3.to_le_bytes()));
+            (0..n).for_each(|k| raw.push(value(k).4));
+            (0..n).for_each(|k| raw.extend_from_slice(&value(k).5.to_le_bytes()));
+            let c = lzf_compress(&raw);
+            out.extend_from_slice(&(c.len() as u32).to_le_bytes());
+            out.extend_from_slice(&(raw.len() as u32).to_le_bytes());
+            out.extend_from_slice(&c);
+        }
+    }
+    out
+}
+
+#[test]
+fn pcd_data_kinds_agree() {
+    let vp = "1 2 3 0.70710678 0 0 0.70710678";
+    for kind in ["ascii", "binary", "binary_compressed"] {
+        let bytes = pcd_bytes(kind, 300, vp);
+        let pcd = read_pcd_bytes(&bytes, kind).unwrap_or_else(|e| panic!("{e}"));
+        let c = &pcd.cloud;
+        assert_eq!(c.len(), 300, "{kind}");
+        for k in [0usize, 7, 299] {
+            assert_eq!(
+                c.positions[k],
+                DVec3::new(k as f64 * 0.5, -(k as f64) * 1.25, k as f64 - 3.0),
+                "{kind} point {k}"
+            );
+            assert_eq!(c.scalar("intensity").unwrap()[k], (k * 2) as u8 as f32);
+            let rgb = 0x00102030u32 + k as u32;
+            assert_eq!(
+                c.colors.as_ref().unwrap()[k],
+                [(rgb >> 16) as u8, (rgb >> 8) as u8, rgb as u8]
+            );
+        }
+        assert_eq!(pcd.viewpoint.trans, DVec3::new(1.0, 2.0, 3.0));
+        let z90 = DQuat::from_rotation_z(std::f64::consts::FRAC_PI_2);
+        assert!(pcd.viewpoint.rot.angle_between(z90) < 1e-6, "{kind}");
+    }
+}
+
+#[test]
+fn pcd_errors_name_the_file_and_never_over_allocate() {
+    let dir = tempfile::tempdir().unwrap();
+    // Billions of points claimed by a tiny file, in every DATA kind.
+    for kind in ["ascii", "binary", "binary_compressed"] {
+        let mut bytes = pcd_bytes(kind, 3, "0 0 0 1 0 0 0");
+        let text = String::from_utf8_lossy(&bytes).to_string();
+        let header_end = text.find(&format!("DATA {kind}\n")).unwrap() + kind.len() + 6;
+        let body = bytes.split_off(header_end);
+        let header = String::from_utf8(bytes)
+            .unwrap()
+            .replace("WIDTH 3", "WIDTH 4000000000")
+            .replace("POINTS 3", "POINTS 4000000000");
+        let mut huge = header.into_bytes();
+        huge.extend_from_slice(&body);
+        let path = temp_file(dir.path(), &format!("huge_{kind}.pcd"), &huge);
+        let e = read_pcd(&path).unwrap_err();
+        assert!(e.to_string().contains(&format!("huge_{kind}.pcd")), "{e}");
+        assert!(
+            matches!(e, PcdError::CountTooLarge { .. } | PcdError::Lzf { .. }),
+            "{kind}: {e}"
+        );
+    }
+    // Every truncation of each kind is an error, not a panic.
+    for kind in ["ascii", "binary", "binary_compressed"] {
+        let bytes = pcd_bytes(kind, 5, "0 0 0 1 0 0 0");
+        // ASCII cannot tell a cut inside the last value from a shorter number, so it only has to fail
+        // (and never panic) while the last line is incomplete up to its final value.
+        let must_fail = if kind == "ascii" {
+            let body = &bytes[..bytes.len() - 1];
+            body.iter().rposition(|&b| b == b' ').unwrap()
+        } else {
+            bytes.len()
+        };
+        for n in 0..bytes.len() {
+            let r = read_pcd_bytes(&bytes[..n], "cut.pcd");
+            assert!(
+                n >= must_fail || r.is_err(),
+                "{kind} cut at {n} of {} read",
+                bytes.len()
+            );
+        }
+    }
+    let cases: [(&str, &str); 6] = [
+        (
+            "VERSION 0.7\nFIELDS a b c\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nDATA ascii\n1 2 3\n",
+            "no x, y and z",
+        ),
+        (
+            "VERSION 0.7\nFIELDS x y z\nSIZE 4 4\nTYPE F F F\nWIDTH 1\nDATA ascii\n1 2 3\n",
+            "differ in length",
+        ),
+        (
+            "FIELDS x y z\nSIZE 4 4 3\nTYPE F F F\nWIDTH 1\nDATA ascii\n1 2 3\n",
+            "SIZE '3'",
+        ),
+        (
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nPOINTS 2\nDATA ascii\n1 2 3\n",
+            "POINTS 2 differs",
+        ),
+        (
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nDATA ascii\n1 oops 3\n",
+            "'oops' is not a number",
+        ),
+        (
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nDATA binary_packed\n",
+            "DATA binary_packed",
+        ),
+    ];
+    for (text, want) in cases {
+        let e = read_pcd_bytes(text.as_bytes(), "case.pcd")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(want) && e.starts_with("case.pcd: "),
+            "{e} (wanted {want})"
+        );
+    }
+    // A corrupt LZF stream.
+    let mut bytes = pcd_bytes("binary_compressed", 50, "0 0 0 1 0 0 0");
+    let n = bytes.len();
+    bytes[n - 10] ^= 0xff;
+    bytes[n - 20] = 0xff;
+    assert!(read_pcd_bytes(&bytes, "lzf.pcd").is_err());
+}
