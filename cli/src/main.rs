@@ -175,8 +175,8 @@ struct UncertaintyCmd {
     /// auto, wgpu or cpu.
     #[arg(long, default_value = "auto")]
     backend: String,
-    /// Perturbation-grid cells per axis.
-    #[arg(long, default_value_t = 256)]
+    /// Perturbation-grid cells per axis (0: from the ray budget, 256 for the defaults).
+    #[arg(long, default_value_t = 0)]
     cells: u32,
     /// Batches of training rays.
     #[arg(long, default_value_t = 1000)]
@@ -594,8 +594,7 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
 fn demo_uncertainty(preset: &str) -> silvr_core::uncertainty::UncertaintyConfig {
     match preset {
         "ci" => silvr_core::uncertainty::UncertaintyConfig {
-            cells: 64,
-            batches: 8,
+            batches: 10,
             rays_per_batch: 1024,
             ..Default::default()
         },

@@ -5,7 +5,6 @@
 mod common;
 
 use rand::{Rng, SeedableRng};
-use silvr_core::field::model::Params;
 use silvr_core::render::LossConfig;
 use silvr_core::train::adam::{AdamConfig, AdamState};
 use silvr_core::train::cpu::{self, StepSchedule};

@@ -125,6 +125,70 @@ fn demo_ci_reports_lidar_vision_and_silvr_with_silvr_beating_vision() {
         "SiLVR held-out PSNR {}",
         f("silvr", "psnr")
     );
+
+    // Uncertainty of the SiLVR field: every AUSE well below a random ordering's, the JSON agreeing with
+    // its curves, the plots written, the default filter dropping some points, and the read-out at the
+    // prior where no ray reaches (under the road) and for depth on the tower beyond lidar range.
+    let u = &report["uncertainty"];
+    let random = u["ause_random"].as_f64().unwrap();
+    assert!(random > 0.3, "random-order AUSE {random}: {u}");
+    let dir = out.join("silvr");
+    let sp: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("sparsification.json")).unwrap()).unwrap();
+    for m in ["colour", "depth", "combined"] {
+        let a = u[format!("ause_{m}")].as_f64().unwrap();
+        assert!(
+            a > 0.0 && a < 0.6 * random,
+            "AUSE {m} {a} vs random {random}"
+        );
+        let c = &sp["curves"][m];
+        let xs: Vec<f64> = serde_json::from_value(c["fractions"].clone()).unwrap();
+        let un: Vec<f64> = serde_json::from_value(c["uncertainty"].clone()).unwrap();
+        let or: Vec<f64> = serde_json::from_value(c["oracle"].clone()).unwrap();
+        assert_eq!((xs.len(), un.len(), or.len()), (100, 100, 100));
+        let area: f64 = (1..xs.len())
+            .map(|i| (xs[i] - xs[i - 1]) * 0.5 * (un[i] - or[i] + un[i - 1] - or[i - 1]))
+            .sum();
+        assert!(
+            (area - a).abs() < 1e-9,
+            "{m}: curves give {area}, report {a}"
+        );
+        assert!(
+            or.windows(2).all(|w| w[1] <= w[0] + 1e-12),
+            "the oracle curve falls"
+        );
+        assert!(dir.join(format!("error_vs_{m}.png")).is_file());
+    }
+    assert!(dir.join("sparsification.png").is_file() && dir.join("uncertainty.bin").is_file());
+    let kept = u["filtered"]["kept_points"].as_u64().unwrap();
+    let total = u["filtered"]["total_points"].as_u64().unwrap();
+    assert!(
+        kept < total && kept > total / 2,
+        "filter kept {kept} of {total}"
+    );
+    let lab = &u["by_label"];
+    let prior = lab["prior"].as_f64().unwrap();
+    let under = lab["under_road_5m"]["combined"].as_f64().unwrap();
+    assert!(
+        (under - prior).abs() < 0.1,
+        "under the road {under} vs prior {prior}"
+    );
+    let tower = lab["tower"]["depth"].as_f64().unwrap();
+    assert!(
+        (tower - prior).abs() < 0.1,
+        "tower depth {tower} vs prior {prior}"
+    );
+    for surface in ["road", "facade", "white_wall"] {
+        let c = lab[surface]["combined"].as_f64().unwrap();
+        assert!(c < prior - 1.5, "{surface}: {c} vs prior {prior}");
+    }
+    let points = silvr_core::pointcloud::read_ply(&dir.join("points.ply")).unwrap();
+    for field in ["log_std_colour", "log_std_depth", "log_std_combined"] {
+        let v = points
+            .scalar(field)
+            .unwrap_or_else(|| panic!("points.ply has no {field}"));
+        assert!(v.iter().all(|x| x.is_finite()));
+    }
 }
 
 #[test]

@@ -452,6 +452,25 @@ pub fn backward_cpu(
     })
 }
 
+/// dL/dposition only (no table gradients), for passes through a frozen field.
+pub fn position_gradients_cpu(
+    config: &HashGridConfig,
+    params: &[f32],
+    positions: &[[f32; 3]],
+    d_features: &[f32],
+) -> Result<Vec<[f32; 3]>, GpuError> {
+    let layout = HashGridLayout::new(config)?;
+    layout.check_params(params.len())?;
+    layout.check_d_features(positions.len(), d_features.len())?;
+    let d = layout.output_dim();
+    Ok(positions
+        .par_iter()
+        .zip(d_features.par_chunks(d.max(1)))
+        .with_min_len(64)
+        .map(|(&x, g)| layout.position_grad(params, x, g))
+        .collect())
+}
+
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 struct LevelGpu {

@@ -577,6 +577,33 @@ pub fn backward_fast(
     d_output: &[f32],
     input_grads: bool,
 ) -> Result<MlpGradients, GpuError> {
+    backward_chunked(config, params, input, saved, d_output, true, input_grads)
+}
+
+/// dL/dinput only (no parameter gradients: half the GEMMs), for passes through a frozen field.
+pub fn input_gradient_fast(
+    config: &MlpConfig,
+    params: &[f32],
+    input: &[f32],
+    saved: &[f32],
+    d_output: &[f32],
+) -> Result<Vec<f32>, GpuError> {
+    Ok(
+        backward_chunked(config, params, input, saved, d_output, false, true)?
+            .input
+            .unwrap_or_default(),
+    )
+}
+
+fn backward_chunked(
+    config: &MlpConfig,
+    params: &[f32],
+    input: &[f32],
+    saved: &[f32],
+    d_output: &[f32],
+    param_grads: bool,
+    input_grads: bool,
+) -> Result<MlpGradients, GpuError> {
     let n = config.rows(params, input)?;
     let ss = config.saved_per_row();
     config.check_len("saved activations", saved.len(), n * ss)?;
@@ -599,7 +626,7 @@ pub fn backward_fast(
         .into_par_iter()
         .enumerate()
         .map(|(c, dx_chunk)| {
-            let mut part = vec![0.0f32; np];
+            let mut part = vec![0.0f32; if param_grads { np } else { 0 }];
             let r0 = c * CH;
             let rows = (n - r0).min(CH);
             // G: dL/d(pre-activation) of the current layer, rows × fan_out; H: dL/d(its input).
@@ -626,9 +653,11 @@ pub fn backward_fast(
                 } else {
                     (&saved[r0 * ss + layers[l - 1].saved..], ss)
                 };
-                for i in 0..rows {
-                    for (pb, gj) in part[ly.bias..ly.bias + fo].iter_mut().zip(&g[i * fo..]) {
-                        *pb += gj;
+                if param_grads {
+                    for i in 0..rows {
+                        for (pb, gj) in part[ly.bias..ly.bias + fo].iter_mut().zip(&g[i * fo..]) {
+                            *pb += gj;
+                        }
                     }
                 }
                 let w = &params[ly.weights..ly.weights + fo * fi];
@@ -639,22 +668,24 @@ pub fn backward_fast(
                 // gradient and W are fo × fi row-major, H is rows × fi.
                 unsafe {
                     // dW += Gᵀ·A.
-                    matrixmultiply::sgemm(
-                        fo,
-                        rows,
-                        fi,
-                        1.0,
-                        g.as_ptr(),
-                        1,
-                        fo as isize,
-                        a.as_ptr(),
-                        a_stride as isize,
-                        1,
-                        1.0,
-                        part[ly.weights..].as_mut_ptr(),
-                        fi as isize,
-                        1,
-                    );
+                    if param_grads {
+                        matrixmultiply::sgemm(
+                            fo,
+                            rows,
+                            fi,
+                            1.0,
+                            g.as_ptr(),
+                            1,
+                            fo as isize,
+                            a.as_ptr(),
+                            a_stride as isize,
+                            1,
+                            1.0,
+                            part[ly.weights..].as_mut_ptr(),
+                            fi as isize,
+                            1,
+                        );
+                    }
                     if need_h {
                         // H = G·W.
                         matrixmultiply::sgemm(
@@ -692,7 +723,7 @@ pub fn backward_fast(
             part
         })
         .collect();
-    let mut grad = vec![0.0f32; np];
+    let mut grad = vec![0.0f32; if param_grads { np } else { 0 }];
     for part in &partials {
         for (g, p) in grad.iter_mut().zip(part) {
             *g += p;

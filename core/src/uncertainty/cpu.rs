@@ -228,16 +228,13 @@ pub fn sample_jacobians_cpu(
             for i in 0..rn {
                 d_rgb[3 * i + k] = cw[i];
             }
-            mlp::backward_fast(
+            mlp::input_gradient_fast(
                 &c_cfg,
                 &params.tensors[COLOUR],
                 &fa.colour_in,
                 &fa.colour.saved,
                 &d_rgb,
-                true,
             )?
-            .input
-            .expect("input gradients were requested")
         } else {
             vec![0.0f32; rn * c_cfg.input]
         };
@@ -247,25 +244,19 @@ pub fn sample_jacobians_cpu(
             d_out[i * od + 1..i * od + 1 + geo]
                 .copy_from_slice(&d_cin[i * c_cfg.input + 16..i * c_cfg.input + 16 + geo]);
         }
-        let d_features = mlp::backward_fast(
+        let d_features = mlp::input_gradient_fast(
             &d_cfg,
             &params.tensors[DENSITY],
             &fa.eval.features,
             &fa.eval.mlp.saved,
             &d_out,
-            true,
-        )?
-        .input
-        .expect("input gradients were requested");
-        let d_unit = hashgrid::backward_cpu(
+        )?;
+        let d_unit = hashgrid::position_gradients_cpu(
             &cfg.field.grid,
             &params.tensors[GRID],
             &fa.eval.unit,
             &d_features,
-            true,
-        )?
-        .positions
-        .expect("position gradients were requested");
+        )?;
         for i in 0..rn {
             g[i][k] = contraction_vjp(pos[i], d_unit[i]);
         }
@@ -292,9 +283,9 @@ pub fn ray_vertex_jacobians(
                 continue;
             }
             let e = map.entry(idx[c]).or_insert([[0.0; 3]; OUTPUTS]);
-            for k in 0..OUTPUTS {
-                for d in 0..3 {
-                    e[k][d] += w[c] as f64 * sj.g[i][k][d] as f64;
+            for (ek, gk) in e.iter_mut().zip(&sj.g[i]) {
+                for (ed, gd) in ek.iter_mut().zip(gk) {
+                    *ed += w[c] as f64 * *gd as f64;
                 }
             }
         }

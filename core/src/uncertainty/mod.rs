@@ -27,7 +27,8 @@ use crate::train::{Engine, Mode, Trainer};
 /// How the uncertainty pass runs.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct UncertaintyConfig {
-    /// Perturbation-grid cells per axis over the contracted cube (BayesRays: 2^8).
+    /// Perturbation-grid cells per axis over the contracted cube (BayesRays: 2^8); 0 = from the ray
+    /// budget ([`Self::grid_cells`]).
     pub cells: u32,
     /// Batches of training rays accumulated (BayesRays: max(images, 1000)).
     pub batches: usize,
@@ -40,7 +41,7 @@ pub struct UncertaintyConfig {
 impl Default for UncertaintyConfig {
     fn default() -> Self {
         UncertaintyConfig {
-            cells: 256,
+            cells: 0,
             batches: 1000,
             rays_per_batch: 4096,
             prior: None,
@@ -51,9 +52,9 @@ impl Default for UncertaintyConfig {
 
 impl UncertaintyConfig {
     pub fn validate(&self) -> Result<(), GpuError> {
-        if !(1..=1024).contains(&self.cells) {
+        if self.cells > 1024 {
             return Err(GpuError::InvalidInput(format!(
-                "uncertainty: {} perturbation cells per axis (1..=1024)",
+                "uncertainty: {} perturbation cells per axis (0 = auto, at most 1024)",
                 self.cells
             )));
         }
@@ -72,8 +73,23 @@ impl UncertaintyConfig {
         Ok(())
     }
 
+    /// Cells per axis: as configured, or from the ray budget. Surfaces are 2-D, so the cells they cross
+    /// grow as L²; L = 2^⌊log2 √(2R)⌋ (R colour rays sampled, at most 256, BayesRays' size) keeps about two
+    /// sampled rays per surface cell: 256 for BayesRays' 1000 × 4096 rays, 128 for the CPU demo's 10 × 1024.
+    /// Finer grids with too few rays read the prior wherever no sampled ray passed.
+    pub fn grid_cells(&self) -> u32 {
+        if self.cells > 0 {
+            return self.cells;
+        }
+        let r = (self.batches as f64 * self.rays_per_batch as f64 * 2.0).sqrt();
+        let l = 2f64.powi(r.log2().floor() as i32);
+        l.clamp(8.0, 256.0) as u32
+    }
+
+    /// λ: as configured, or BayesRays' 1e-4 / L³.
     pub fn prior_precision(&self) -> f64 {
-        self.prior.unwrap_or(1e-4 / (self.cells as f64).powi(3))
+        self.prior
+            .unwrap_or(1e-4 / (self.grid_cells() as f64).powi(3))
     }
 }
 
@@ -459,7 +475,7 @@ pub async fn compute_fisher(
 ) -> Result<Fisher, GpuError> {
     config.validate()?;
     let grid = PerturbationGrid {
-        cells: config.cells,
+        cells: config.grid_cells(),
     };
     let nv = grid.vertices();
     let source = RaySource::new(&trainer.data, trainer.config.mode != Mode::Vision);
@@ -509,7 +525,7 @@ pub async fn compute_fisher(
     let sd = source.lidar_pixels() as f64 / n_depth.max(1) as f64;
     let (colour_sigma, depth_sigma) = noise_scales(trainer);
     let f = Fisher {
-        cells: config.cells,
+        cells: grid.cells,
         colour: colour.into_iter().map(|v| (v * sc) as f32).collect(),
         depth: depth.into_iter().map(|v| (v * sd) as f32).collect(),
         rays: source.pixels,
@@ -526,6 +542,30 @@ pub async fn compute_fisher(
 mod tests {
     use super::*;
     use crate::field::encoding::contract_unit;
+
+    #[test]
+    fn automatic_grid_follows_the_ray_budget() {
+        let c = |batches, rays| UncertaintyConfig {
+            batches,
+            rays_per_batch: rays,
+            ..Default::default()
+        };
+        assert_eq!(c(1000, 4096).grid_cells(), 256);
+        assert_eq!(c(10, 1024).grid_cells(), 128);
+        assert_eq!(c(1, 64).grid_cells(), 8);
+        let fixed = UncertaintyConfig {
+            cells: 32,
+            ..c(1000, 4096)
+        };
+        assert_eq!(fixed.grid_cells(), 32);
+        assert!((fixed.prior_precision() - 1e-4 / 32768.0).abs() < 1e-15);
+        assert!(UncertaintyConfig {
+            cells: 2000,
+            ..fixed
+        }
+        .validate()
+        .is_err());
+    }
 
     #[test]
     fn corners_interpolate_and_index_uniquely() {
