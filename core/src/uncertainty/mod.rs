@@ -75,7 +75,7 @@ impl UncertaintyConfig {
 
     /// Cells per axis: as configured, or from the ray budget. Surfaces are 2-D, so the cells they cross
     /// grow as L²; L = 2^⌊log2 √(2R)⌋ (R colour rays sampled, at most 256, BayesRays' size) keeps about two
-    /// sampled rays per surface cell: 256 for BayesRays' 1000 × 4096 rays, 128 for the CPU demo's 10 × 1024.
+    /// sampled rays per surface cell: 256 for BayesRays' 1000 × 4096 rays, 128 for the CPU demo's 8 × 1024.
     /// Finer grids with too few rays read the prior wherever no sampled ray passed.
     pub fn grid_cells(&self) -> u32 {
         if self.cells > 0 {
