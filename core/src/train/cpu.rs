@@ -542,7 +542,15 @@ mod tests {
     /// stops its gradient into the final weights, which differences would see.
     #[test]
     fn step_gradient_matches_finite_differences() {
-        let cfg = ModelConfig::tiny();
+        // The tiny model with nerfacto's proposal grid depth (the shared tiny model uses 3 levels).
+        let mut cfg = ModelConfig::tiny();
+        for (p, d) in cfg
+            .proposals
+            .iter_mut()
+            .zip(ModelConfig::nerfacto(3).proposals)
+        {
+            p.grid.levels = d.grid.levels;
+        }
         let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(5);
         let mut params = Params::init(&cfg, 9).unwrap();
         // Larger than the init so densities and colours vary along the rays.
