@@ -196,7 +196,7 @@ pub fn filter(cloud: &PointCloud, field: &str, threshold: f32) -> PointCloud {
 }
 
 /// Per-pixel combined uncertainty of a held-out view, read out at each pixel's expected-depth point,
-/// as a greyscale PNG (black = certain, white = the prior), with the range in the file name's JSON.
+/// as a greyscale PNG: black = the most certain pixel of the view, white = the prior.
 fn uncertainty_image(trainer: &mut Trainer, fisher: &Fisher, i: usize) -> Result<Vec<u8>> {
     let v = pollster::block_on(trainer.render_view(i, false))?;
     let (rays, _) = trainer.view_rays(i);
