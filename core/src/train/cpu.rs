@@ -532,6 +532,30 @@ pub fn render_rays(
     Ok(out)
 }
 
+/// Random rays for the CPU tests (origins near z = −0.5 looking along +z, appearance rows 0..3).
+#[cfg(test)]
+pub(crate) fn random_rays(rng: &mut impl rand::Rng, r: usize) -> Vec<TrainRay> {
+    (0..r)
+        .map(|i| {
+            let d = [
+                rng.random_range(-1.0..1.0f32),
+                rng.random_range(-1.0..1.0),
+                1.0,
+            ];
+            let l = (d[0] * d[0] + d[1] * d[1] + 1.0).sqrt();
+            TrainRay {
+                origin: [
+                    rng.random_range(-0.3..0.3),
+                    rng.random_range(-0.3..0.3),
+                    -0.5,
+                ],
+                dir: d.map(|v| v / l),
+                appearance: (i % 3) as u32,
+            }
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -560,25 +584,7 @@ mod tests {
             }
         }
         let r = 6;
-        let rays: Vec<TrainRay> = (0..r)
-            .map(|i| {
-                let d = [
-                    rng.random_range(-1.0..1.0f32),
-                    rng.random_range(-1.0..1.0),
-                    1.0,
-                ];
-                let l = (d[0] * d[0] + d[1] * d[1] + 1.0).sqrt();
-                TrainRay {
-                    origin: [
-                        rng.random_range(-0.3..0.3),
-                        rng.random_range(-0.3..0.3),
-                        -0.5,
-                    ],
-                    dir: d.map(|v| v / l),
-                    appearance: (i % 3) as u32,
-                }
-            })
-            .collect();
+        let rays = random_rays(&mut rng, r);
         let targets: Vec<RayTarget> = (0..r)
             .map(|i| RayTarget {
                 rgb: [rng.random(), rng.random(), rng.random()],

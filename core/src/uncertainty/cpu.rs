@@ -346,25 +346,7 @@ mod tests {
                 *v += rng.random_range(-0.3..0.3f32);
             }
         }
-        let rays = (0..r)
-            .map(|i| {
-                let d = [
-                    rng.random_range(-1.0..1.0f32),
-                    rng.random_range(-1.0..1.0),
-                    1.0,
-                ];
-                let l = (d[0] * d[0] + d[1] * d[1] + 1.0).sqrt();
-                TrainRay {
-                    origin: [
-                        rng.random_range(-0.3..0.3),
-                        rng.random_range(-0.3..0.3),
-                        -0.5,
-                    ],
-                    dir: d.map(|v| v / l),
-                    appearance: (i % 3) as u32,
-                }
-            })
-            .collect();
+        let rays = crate::train::cpu::random_rays(&mut rng, r);
         (cfg, params, rays)
     }
 
