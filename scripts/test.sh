@@ -12,15 +12,16 @@ export SILVR_REQUIRE_GPU=1
 export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
 
 echo "== native tests (cargo test --workspace)"
-cargo build -q -p silvr
+# One build of every target first (the CLI tests run target/debug/silvr): building `-p silvr` on its own
+# resolved dependency features differently and compiled naga, wgpu and image a second time.
+cargo build --workspace --all-targets
 cargo test --workspace
 
 echo "== evaluator cross-check against SciPy cKDTree (and scikit-image SSIM)"
 python3 scripts/crosscheck_eval.py
 
-echo "== engine builds for wasm32 with no native-only dependency"
-cargo build -q -p silvr-core --target wasm32-unknown-unknown
-
+# The browser tests compile silvr-core for wasm32 (through silvr-web and silvr-worker): that is also the
+# check that the engine has no native-only dependency in its wasm32 build.
 echo "== browser tests"
 scripts/browser-tests.sh
 echo "== all tests passed"

@@ -11,6 +11,7 @@ use silvr_core::gpu::{Gpu, GpuOptions};
 use silvr_core::lidar::{map, project};
 use silvr_core::synthetic::{generate, Preset};
 
+mod ingest;
 mod train;
 mod uncertainty;
 
@@ -51,7 +52,14 @@ enum Command {
         out: PathBuf,
         #[arg(long)]
         overwrite: bool,
+        /// Also record the world as a ROS 2 bag (Oxford Spires topics, Hesai clouds) at this path, with
+        /// the rig file `silvr ingest` reads it with beside it (NAME.rig.yaml).
+        #[arg(long)]
+        mcap: Option<PathBuf>,
     },
+    /// A ROS 2 bag (MCAP) + rig file → a dataset: deskewed lidar, per-camera depth, normals and sky masks,
+    /// poses, transforms.json. `--info` lists a bag's topics.
+    Ingest(ingest::IngestCmd),
     /// Score a reconstruction against ground truth: accuracy, completeness, precision/recall/F.
     Eval {
         /// Reconstruction point cloud (PLY).
@@ -223,7 +231,12 @@ fn main() {
             seed,
             out,
             overwrite,
-        } => synth(&preset, seed, &out, overwrite).map(|_| ()),
+            mcap,
+        } => match mcap {
+            None => synth(&preset, seed, &out, overwrite).map(|_| ()),
+            Some(bag) => synth_bag(&preset, seed, &out, overwrite, &bag),
+        },
+        Command::Ingest(c) => ingest::run(c, open_gpu),
         Command::Eval {
             reconstruction,
             gt,
@@ -406,6 +419,53 @@ fn synth_with(
         start.elapsed().as_secs_f64()
     );
     Ok(summary)
+}
+
+/// The rig file written beside a bag: `scene.mcap` → `scene.rig.yaml`.
+fn rig_file_for(bag: &Path) -> PathBuf {
+    bag.with_extension("rig.yaml")
+}
+
+fn synth_bag(preset: &str, seed: u64, out: &Path, overwrite: bool, bag: &Path) -> Result<()> {
+    use silvr_core::synthetic::bag;
+    let preset = preset_by_name(preset, seed)?;
+    if bag.exists() && !overwrite {
+        anyhow::bail!("{}: already exists (use --overwrite)", bag.display());
+    }
+    let gpu = open_gpu()?;
+    let mut recorder = bag::BagRecorder::create(bag)?;
+    let start = Instant::now();
+    let summary = pollster::block_on(generate::generate_recording(
+        &preset,
+        &gpu,
+        out,
+        overwrite,
+        &mut |p| {
+            if p.done % 5 == 0 || p.done == p.total {
+                eprintln!("[synth] {} {}/{}", p.stage, p.done, p.total);
+            }
+        },
+        Some(&mut recorder),
+    ))
+    .with_context(|| {
+        format!(
+            "generating the {} world into {}",
+            preset.name,
+            out.display()
+        )
+    })?;
+    let rig = rig_file_for(bag);
+    silvr_core::dataset::write_atomic(&rig, bag::rig_config(&preset).to_yaml().as_bytes())?;
+    eprintln!(
+        "[synth] wrote {} ({} keyframes), the bag {} ({} bytes) and its rig file {} in {:.1} s",
+        summary.path.display(),
+        summary.keyframes,
+        bag.display(),
+        std::fs::metadata(bag).map(|m| m.len()).unwrap_or(0),
+        rig.display(),
+        start.elapsed().as_secs_f64()
+    );
+    Ok(())
 }
 
 fn synth(preset: &str, seed: u64, out: &Path, overwrite: bool) -> Result<generate::SynthSummary> {

@@ -986,3 +986,254 @@ fn pcd_errors_name_the_file_and_never_over_allocate() {
     bytes[n - 20] = 0xff;
     assert!(read_pcd_bytes(&bytes, "lzf.pcd").is_err());
 }
+
+// ---------------------------------------------------------------------------------------------------
+// The synthetic world as a bag → `silvr ingest` → the same dataset
+// ---------------------------------------------------------------------------------------------------
+
+mod common;
+
+use silvr_core::dataset::{read_gray8, read_png16, read_rgb, Transforms};
+use silvr_core::ingest::config::RigConfig;
+use silvr_core::ingest::rosbag::{ingest_bag, IngestError};
+use silvr_core::synthetic::bag::{rig_config, BagRecorder, EPOCH};
+use silvr_core::synthetic::{generate, Preset};
+
+/// The ci world cut to a few keyframes, generated as a dataset and recorded as a bag at the same time.
+fn synth_with_bag(dir: &Path, gpu: &silvr_core::gpu::Gpu) -> Preset {
+    let mut preset = Preset::ci(5);
+    preset.keyframes = 4;
+    let mut rec = BagRecorder::create(&dir.join("scene.mcap")).unwrap();
+    pollster::block_on(generate::generate_recording(
+        &preset,
+        gpu,
+        &dir.join("synth"),
+        false,
+        &mut |_| {},
+        Some(&mut rec),
+    ))
+    .unwrap();
+    preset
+}
+
+/// Fraction of entries where `a` and `b` differ by more than `tol`.
+fn frac_differing<T: Copy + Into<f64>>(a: &[T], b: &[T], tol: f64) -> f64 {
+    assert_eq!(a.len(), b.len());
+    let n = a
+        .iter()
+        .zip(b)
+        .filter(|(x, y)| ((**x).into() - (**y).into()).abs() > tol)
+        .count();
+    n as f64 / a.len() as f64
+}
+
+#[test]
+fn synthetic_bag_ingests_to_the_generated_dataset() {
+    let Some(gpu) = common::gpu() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let preset = synth_with_bag(dir, &gpu);
+    // The rig file goes through its YAML form, as `silvr synth --mcap` writes it.
+    let cfg = RigConfig::parse(&rig_config(&preset).to_yaml(), "scene.rig.yaml").unwrap();
+    assert_eq!(cfg.ingest.lidar_topic, "/hesai/pandar");
+    let summary = pollster::block_on(ingest_bag(
+        &dir.join("scene.mcap"),
+        &cfg,
+        dir,
+        &dir.join("ingested"),
+        false,
+        &gpu,
+        &mut |_| {},
+    ))
+    .unwrap();
+    println!("{}", serde_json::to_string_pretty(&summary).unwrap());
+    assert_eq!(summary.keyframes, 4);
+    assert_eq!(summary.images, 12);
+    assert!(summary.dropped.is_empty(), "{:?}", summary.dropped);
+    // Estimated from the clouds, not given: the ci lidar is 16 beams × 360 columns.
+    assert_eq!((summary.lidar_beams, summary.lidar_columns), (16, 360));
+    assert_eq!(
+        summary.topics["/odometry"].used,
+        summary.topics["/odometry"].messages
+    );
+
+    let (a, b) = (dir.join("synth"), dir.join("ingested"));
+    let ta = Transforms::read(&a.join("transforms.json")).unwrap();
+    let tb = Transforms::read(&b.join("transforms.json")).unwrap();
+    assert_eq!(ta.frames.len(), tb.frames.len());
+    assert_eq!(ta.train_filenames, tb.train_filenames);
+    assert_eq!(ta.val_filenames, tb.val_filenames);
+    let (mut worst_depth, mut worst_normal, mut worst_sky) = (0.0f64, 0.0f64, 0.0f64);
+    for (fa, fb) in ta.frames.iter().zip(&tb.frames) {
+        assert_eq!(fa.file_path, fb.file_path);
+        assert_eq!(
+            (fa.fl_x, fa.fl_y, fa.cx, fa.cy, fa.k1, fa.k4),
+            (fb.fl_x, fb.fl_y, fb.cx, fb.cy, fb.k1, fb.k4)
+        );
+        for (ra, rb) in fa.transform_matrix.iter().zip(&fb.transform_matrix) {
+            for (x, y) in ra.iter().zip(rb) {
+                assert!(
+                    (x - y).abs() < 1e-6,
+                    "{} pose {ra:?} vs {rb:?}",
+                    fa.file_path
+                );
+            }
+        }
+        assert!((fa.time.unwrap() + EPOCH - fb.time.unwrap()).abs() < 1e-6);
+        // Images: lossless through the bag.
+        assert_eq!(
+            read_rgb(&a.join(&fa.file_path)).unwrap(),
+            read_rgb(&b.join(&fb.file_path)).unwrap()
+        );
+        // Depth within the PNG quantisation (1/256 m); the bag's f32 coordinates may move a return across
+        // a pixel border or flip which of two nearly equal returns wins, rarely.
+        let da = read_png16(&a.join(fa.depth_file_path.as_ref().unwrap()))
+            .unwrap()
+            .2;
+        let db = read_png16(&b.join(fb.depth_file_path.as_ref().unwrap()))
+            .unwrap()
+            .2;
+        let filled = da.iter().filter(|&&d| d > 0 && d < u16::MAX).count();
+        assert!(filled > 300, "{}: only {filled} lidar pixels", fa.file_path);
+        worst_depth =
+            worst_depth.max(frac_differing(&da, &db, 1.0) * da.len() as f64 / filled as f64);
+        let na: Vec<u8> = read_rgb(&a.join(fa.normal_file_path.as_ref().unwrap()))
+            .unwrap()
+            .2
+            .concat();
+        let nb: Vec<u8> = read_rgb(&b.join(fb.normal_file_path.as_ref().unwrap()))
+            .unwrap()
+            .2
+            .concat();
+        worst_normal =
+            worst_normal.max(frac_differing(&na, &nb, 2.0) * da.len() as f64 / filled as f64);
+        let sa = read_gray8(&a.join(fa.sky_mask_path.as_ref().unwrap()))
+            .unwrap()
+            .2;
+        let sb = read_gray8(&b.join(fb.sky_mask_path.as_ref().unwrap()))
+            .unwrap()
+            .2;
+        worst_sky = worst_sky.max(frac_differing(&sa, &sb, 0.0));
+    }
+    println!("differing: depth {worst_depth:.2e} of lidar pixels, normals {worst_normal:.2e}, sky {worst_sky:.2e} of all");
+    assert!(
+        worst_depth <= 2e-3,
+        "depth differs on {worst_depth:.2e} of lidar pixels"
+    );
+    assert!(worst_normal <= 5e-3, "normals differ on {worst_normal:.2e}");
+    assert!(
+        worst_sky <= 1e-3,
+        "sky masks differ on {worst_sky:.2e} of pixels"
+    );
+    // Deskewed sweeps agree to the f32 precision of PointCloud2 coordinates.
+    for k in 0..4 {
+        let rel = format!("lidar/deskewed/{k:05}.ply");
+        let pa = silvr_core::pointcloud::read_ply(&a.join(&rel)).unwrap();
+        let pb = silvr_core::pointcloud::read_ply(&b.join(&rel)).unwrap();
+        assert_eq!(pa.len(), pb.len(), "{rel}");
+        let worst = pa
+            .positions
+            .iter()
+            .zip(&pb.positions)
+            .filter(|(p, _)| p.is_finite())
+            .map(|(p, q)| (*p - *q).length())
+            .fold(0.0, f64::max);
+        assert!(worst < 1e-4, "{rel}: {worst} m");
+        assert_eq!(pa.scalar("ring"), pb.scalar("ring"), "{rel}");
+        assert_eq!(
+            pa.scalar("column"),
+            pb.scalar("column"),
+            "{rel}: columns recovered from azimuths"
+        );
+    }
+    // Poses: lidar trajectory at the keyframes.
+    let pa = silvr_core::dataset::read_tum(&a.join("poses/lidar_tum.txt")).unwrap();
+    let pb = silvr_core::dataset::read_tum(&b.join("poses/lidar_tum.txt")).unwrap();
+    for ((sa, qa), (sb, qb)) in pa
+        .stamps()
+        .iter()
+        .zip(pa.poses())
+        .zip(pb.stamps().iter().zip(pb.poses()))
+    {
+        assert!((sa + EPOCH - sb).abs() < 1e-6);
+        assert!(qa.distance_to(qb) < 1e-6 && qa.angle_to(qb) < 1e-6);
+    }
+}
+
+#[test]
+fn broken_bags_and_rig_files_fail_cleanly_without_a_dataset() {
+    let Some(gpu) = common::gpu() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let preset = synth_with_bag(dir, &gpu);
+    let bag = dir.join("scene.mcap");
+    let ingest = |bag: &Path, cfg: &RigConfig, out: &str| {
+        pollster::block_on(ingest_bag(
+            bag,
+            cfg,
+            dir,
+            &dir.join(out),
+            false,
+            &gpu,
+            &mut |_| {},
+        ))
+    };
+    let no_partial = |name: &str| {
+        let left: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.contains(name))
+            .collect();
+        assert!(left.is_empty(), "left behind: {left:?}");
+    };
+    // A wrong lidar topic: named, with the topics the bag has.
+    let mut cfg = rig_config(&preset);
+    cfg.ingest.lidar_topic = "/velodyne_points".into();
+    let e = ingest(&bag, &cfg, "o1").unwrap_err().to_string();
+    assert!(
+        e.contains("scene.mcap") && e.contains("/velodyne_points") && e.contains("/hesai/pandar"),
+        "{e}"
+    );
+    no_partial("o1");
+    // No extrinsics in the rig file: taken from /tf_static, same result as with them.
+    let mut cfg = rig_config(&preset);
+    cfg.sensor.t_base_lidar = None;
+    for c in &mut cfg.sensor.cameras {
+        c.t_cam_lidar = None;
+        c.intrinsics = None; // and intrinsics from CameraInfo
+    }
+    let s = ingest(&bag, &cfg, "o2").unwrap();
+    assert_eq!(s.keyframes, 4);
+    let rig_tf: silvr_core::rig::Rig =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("o2/calib/rig.json")).unwrap())
+            .unwrap();
+    for (c, want) in rig_tf.cameras.iter().zip(&preset.rig.cameras) {
+        assert!(c.t_lidar_cam.distance_to(&want.t_lidar_cam) < 1e-9);
+        assert!(
+            (c.model.fx - want.model.fx).abs() < 1e-9
+                && c.model.distortion == want.model.distortion
+        );
+    }
+    // ... but without either, a clear error.
+    let mut cfg2 = cfg.clone();
+    cfg2.ingest.base_frame = "body".into();
+    let e = ingest(&bag, &cfg2, "o3").unwrap_err().to_string();
+    assert!(e.contains("T_base_lidar") && e.contains("body"), "{e}");
+    no_partial("o3");
+    // A truncated bag: a container error naming the file, and no dataset.
+    let bytes = std::fs::read(&bag).unwrap();
+    let cut = dir.join("cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let e = ingest(&cut, &rig_config(&preset), "o4").unwrap_err();
+    assert!(matches!(e, IngestError::Bag(_)), "{e}");
+    assert!(e.to_string().contains("cut.mcap"), "{e}");
+    assert!(!dir.join("o4").exists());
+    no_partial("o4");
+    // Keyframe thinning: 4 keyframes 0.7 m apart, a 1.2 m rule keeps every second.
+    let mut cfg = rig_config(&preset);
+    cfg.ingest.keyframe_distance = 1.2;
+    cfg.ingest.keyframe_angle_deg = 90.0;
+    let s = ingest(&bag, &cfg, "o5").unwrap();
+    assert_eq!(s.keyframes, 2, "{:?}", s.dropped);
+    assert_eq!(s.dropped.values().sum::<u64>(), 2);
+}

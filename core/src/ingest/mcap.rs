@@ -45,6 +45,16 @@ pub enum BagError {
     /// its uncompressed chunk when the chunk has no CRC); caught so a bad file stays an error.
     #[error("{file}: corrupt MCAP: the reader failed on an inconsistent record ({detail})")]
     ReaderPanic { file: String, detail: String },
+    /// Writing a bag failed in the container layer.
+    #[error("{file}: writing MCAP: {source}")]
+    Write {
+        file: String,
+        #[source]
+        source: McapError,
+    },
+    /// The bag is usable as a container but not for what was asked (missing topic, wrong type, …).
+    #[error("{file}: {reason}")]
+    Invalid { file: String, reason: String },
     /// A message of a known type did not decode.
     #[error("{file}: message #{index} on '{topic}' at log time {log_time} ns: {source}")]
     Decode {

@@ -4,6 +4,10 @@
 //! - [`ros`]: hand-written decoders of the message types the ingest uses, with conversion to points with
 //!   per-point time, RGB images and camera models.
 //! - [`mcap`] (native only): walks an MCAP file and dispatches by schema name.
+//! - [`config`] (native only): the rig file (Oxford Spires `sensor.yaml` + an `ingest:` block).
+//! - [`tf`]: static TF tree lookups.
+//! - [`rosbag`] (native only): a bag + rig file → the dataset layout (`silvr ingest`).
+//! - [`writer`] (native only): writes ROS 2 MCAP bags (the synthetic world as a bag, round-trip tests).
 //! - [`pcd`]: PCL's PCD (ascii, binary, binary_compressed) into a [`crate::pointcloud::PointCloud`].
 //!
 //! Every reader treats its input as untrusted: errors, never panics, and no allocation larger than the
@@ -11,6 +15,13 @@
 
 pub mod cdr;
 #[cfg(not(target_arch = "wasm32"))]
+pub mod config;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod mcap;
 pub mod pcd;
 pub mod ros;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod rosbag;
+pub mod tf;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod writer;

@@ -470,6 +470,8 @@ pub struct LidarScan {
     pub intensities: Option<Vec<f32>>,
     /// Per-point time in seconds relative to `stamp`, when the cloud has a time field.
     pub times: Option<Vec<f64>>,
+    /// Per-point beam index when the cloud has a `ring` (Hesai, Ouster, Velodyne) or `line` (Livox) field.
+    pub rings: Option<Vec<u16>>,
     /// The convention the time field was read with (`None` when there is none).
     pub time_kind: Option<PointTimeKind>,
     /// Points dropped because a coordinate was NaN or infinite.
@@ -610,6 +612,10 @@ impl<'a> PointCloud2<'a> {
             return Err(err("no x, y and z fields".into()));
         };
         let fi = self.checked_field("intensity")?;
+        let fr = match self.checked_field("ring")? {
+            Some(f) => Some(f),
+            None => self.checked_field("line")?,
+        };
         let mut ft = None;
         for name in TIME_FIELDS {
             if let Some(f) = self.checked_field(name)? {
@@ -648,6 +654,7 @@ impl<'a> PointCloud2<'a> {
         let mut positions = Vec::with_capacity(n);
         let mut intensities = fi.map(|_| Vec::with_capacity(n));
         let mut raw_times = ft.map(|_| Vec::with_capacity(n));
+        let mut rings = fr.map(|_| Vec::with_capacity(n));
         let (mut skipped_nonfinite, mut skipped_zero) = (0, 0);
         for row in 0..h as usize {
             let row_base = row * self.row_step as usize;
@@ -672,6 +679,15 @@ impl<'a> PointCloud2<'a> {
                 }
                 if let (Some(f), Some(v)) = (ft, raw_times.as_mut()) {
                     v.push(read_number(data, base + f.offset as usize, f.datatype, big));
+                }
+                if let (Some(f), Some(v)) = (fr, rings.as_mut()) {
+                    let r = read_number(data, base + f.offset as usize, f.datatype, big);
+                    // Beam indices are small non-negative integers; anything else reads as "no ring".
+                    v.push(if (0.0..65535.0).contains(&r) {
+                        r as u16
+                    } else {
+                        u16::MAX
+                    });
                 }
             }
         }
@@ -702,6 +718,7 @@ impl<'a> PointCloud2<'a> {
             intensities,
             times,
             time_kind,
+            rings,
             skipped_nonfinite,
             skipped_zero,
         })

@@ -18,8 +18,9 @@ use crate::dataset::{
 use crate::eval::occupancy::OccupancyGrid;
 use crate::geometry::{Se3, Trajectory};
 use crate::gpu::{Gpu, GpuError};
-use crate::lidar::{deskew, images, normals, project, sky};
+use crate::lidar::{deskew, images, products};
 use crate::pointcloud::{write_ply_bytes, PointCloud};
+use crate::rig::RigCamera;
 
 /// Generator version, recorded in the manifest; bump when output bytes change for the same seed.
 pub const GENERATOR_VERSION: &str = "silvr-synth 1";
@@ -130,6 +131,20 @@ fn ply(pc: &PointCloud, rel: &str) -> Result<Vec<u8>, SynthError> {
     write_ply_bytes(pc).map_err(|e| SynthError::Other(format!("{rel}: {e}")))
 }
 
+/// Receives the sensor data as the rig recorded it, in time order: the odometry first, then per keyframe
+/// its camera images and the raw sweep. `silvr synth --mcap` writes a ROS 2 bag with it
+/// (`synthetic::bag`), which `silvr ingest` turns back into this dataset.
+pub trait SensorRecorder {
+    /// Before the first keyframe: `T_world_lidar` as the odometry system reports it.
+    fn begin(&mut self, preset: &Preset, odometry: &Trajectory) -> Result<(), String>;
+    /// Camera `camera`'s image of keyframe `k`, taken at `time`.
+    fn image(&mut self, k: usize, camera: usize, time: f64, rgb: &[[u8; 3]]) -> Result<(), String>;
+    /// Keyframe `k`'s raw sweep (sensor frame at each point's firing time).
+    fn sweep(&mut self, k: usize, sweep: &Sweep) -> Result<(), String>;
+    /// After the last keyframe.
+    fn finish(&mut self) -> Result<(), String>;
+}
+
 /// Generates `preset` into `out` (which must not exist unless `overwrite`).
 pub async fn generate(
     preset: &Preset,
@@ -138,12 +153,28 @@ pub async fn generate(
     overwrite: bool,
     progress: &mut dyn FnMut(Progress),
 ) -> Result<SynthSummary, SynthError> {
+    generate_recording(preset, gpu, out, overwrite, progress, None).await
+}
+
+/// [`generate`], also handing the sensor data to `recorder` (see [`SensorRecorder`]). The recorder finishes
+/// before the dataset is committed, so a failed recording leaves no dataset behind.
+pub async fn generate_recording(
+    preset: &Preset,
+    gpu: &Gpu,
+    out: &Path,
+    overwrite: bool,
+    progress: &mut dyn FnMut(Progress),
+    mut recorder: Option<&mut dyn SensorRecorder>,
+) -> Result<SynthSummary, SynthError> {
     let world = World::generate(preset.world.clone(), preset.seed);
     let mut o = Out {
         w: DatasetWriter::create(out, overwrite)?,
         files: BTreeMap::new(),
     };
     let odo = odometry(preset);
+    if let Some(rec) = recorder.as_deref_mut() {
+        rec.begin(preset, &odo).map_err(SynthError::Other)?;
+    }
     let cams: Vec<&str> = preset.rig.cameras.iter().map(|c| c.name.as_str()).collect();
     let seen_voxel = preset.observed_voxel;
     let mut seen: HashSet<[i64; 3]> = HashSet::new();
@@ -207,16 +238,6 @@ pub async fn generate(
             raw_points: sweep.points.len(),
             deskewed_dropped: desk.dropped,
         });
-        let ring: Vec<u16> = sweep.points.iter().map(|p| p.ring).collect();
-        let column: Vec<u16> = sweep.points.iter().map(|p| p.column).collect();
-        let (rimg, nrm) = normals::sweep_normals(
-            &desk.positions,
-            preset.lidar.beams as usize,
-            preset.lidar.columns as usize,
-            &ring,
-            &column,
-        );
-
         // Ground truth of what the lidar observed: exact returns, and free space along their rays.
         let exact = simulate_sweep(
             &world,
@@ -243,6 +264,7 @@ pub async fn generate(
         }
         observed.insert_scan(t_world_lidar.trans, &ends);
 
+        let mut rgbs = Vec::with_capacity(cams.len());
         for (ci, cam) in preset.rig.cameras.iter().enumerate() {
             let t_world_cam = t_world_lidar * cam.t_lidar_cam;
             cam_poses[ci].push(t_world_cam);
@@ -313,43 +335,39 @@ pub async fn generate(
 
             observed.insert_scan(t_world_cam.trans, &cam_ends);
 
-            // Lidar supervision for this camera, exactly as for real data.
-            let t_cam_lidar = cam.t_lidar_cam.inverse();
-            let input = project::ProjectionInput {
-                camera: model,
-                t_cam_points: t_cam_lidar,
-                points: &desk.positions,
-                near: preset.lidar.min_range as f32,
-            };
-            let proj = project::project_gpu(gpu, &input).await?;
-            let (mut depth, nimg) =
-                images::lidar_images(&proj, &desk.positions, &nrm, &t_cam_lidar);
-            let up_lidar = t_world_lidar.rot.inverse() * DVec3::Z;
-            let mask = sky::sky_mask(
-                &sky::SkyInput {
-                    camera: model,
-                    rgb: &frame.rgb,
-                    t_cam_lidar,
-                    points: &desk.positions,
-                    image: &rimg,
-                    depth: &depth,
-                    up_lidar,
-                },
-                sky::SkyParams::default(),
-            );
-            for (d, &m) in depth.iter_mut().zip(&mask) {
-                if m && *d == 0 {
-                    *d = images::SKY_DEPTH;
-                }
-            }
-            let mask8: Vec<u8> = mask.iter().map(|&m| if m { 255 } else { 0 }).collect();
+            rgbs.push(frame.rgb);
+        }
+
+        // Lidar supervision of every camera, exactly as for real data (`silvr ingest` runs the same code).
+        let ring: Vec<u16> = sweep.points.iter().map(|p| p.ring).collect();
+        let column: Vec<u16> = sweep.points.iter().map(|p| p.column).collect();
+        let sweep_input = products::SweepInput {
+            positions: &desk.positions,
+            ring: &ring,
+            column: &column,
+            beams: preset.lidar.beams as usize,
+            columns: preset.lidar.columns as usize,
+            min_range: preset.lidar.min_range,
+            t_world_lidar,
+        };
+        let cams_rgb: Vec<(&RigCamera, &[[u8; 3]])> = preset
+            .rig
+            .cameras
+            .iter()
+            .zip(&rgbs)
+            .map(|(c, rgb)| (c, rgb.as_slice()))
+            .collect();
+        let made = products::keyframe_products(gpu, &sweep_input, &cams_rgb).await?;
+        for (ci, (cam, p)) in preset.rig.cameras.iter().zip(made).enumerate() {
+            let (cn, model) = (cam.name.as_str(), &cam.model);
+            let (w, h) = (model.width, model.height);
             let depth_rel = format!("lidar_depth/{cn}/{name}.png");
             let normal_rel = format!("lidar_normals/{cn}/{name}.png");
             let sky_rel = format!("sky_mask/{cn}/{name}.png");
-            o.put(depth_rel.clone(), &png_gray16(w, h, &depth))?;
-            o.put(normal_rel.clone(), &png_rgb(w, h, &nimg))?;
-            o.put(sky_rel.clone(), &png_gray8(w, h, &mask8))?;
-            let mut f = NsFrame::new(format!("images/{cn}/{name}.png"), model, &t_world_cam);
+            o.put(depth_rel.clone(), &png_gray16(w, h, &p.depth))?;
+            o.put(normal_rel.clone(), &png_rgb(w, h, &p.normals))?;
+            o.put(sky_rel.clone(), &png_gray8(w, h, &p.sky))?;
+            let mut f = NsFrame::new(format!("images/{cn}/{name}.png"), model, &cam_poses[ci][k]);
             f.depth_file_path = Some(depth_rel);
             f.normal_file_path = Some(normal_rel);
             f.sky_mask_path = Some(sky_rel);
@@ -357,6 +375,12 @@ pub async fn generate(
             f.keyframe = Some(k);
             f.time = Some(t_img);
             frames.push(f);
+        }
+        if let Some(rec) = recorder.as_deref_mut() {
+            for (ci, rgb) in rgbs.iter().enumerate() {
+                rec.image(k, ci, t_img, rgb).map_err(SynthError::Other)?;
+            }
+            rec.sweep(k, &sweep).map_err(SynthError::Other)?;
         }
     }
 
@@ -464,6 +488,9 @@ pub async fn generate(
         serde_json::to_string_pretty(&manifest).map_err(|e| SynthError::Other(e.to_string()))?;
     o.put("manifest.json".into(), text.as_bytes())?;
     let n_files = o.files.len();
+    if let Some(rec) = recorder {
+        rec.finish().map_err(SynthError::Other)?;
+    }
     let path = o.w.commit()?;
     Ok(SynthSummary {
         path,

@@ -2,8 +2,10 @@
 //!
 //! [`world`] builds the town, [`raycast`] intersects rays with it, [`trajectory`] walks the rig around it,
 //! [`sensors`] renders the cameras and fires the lidar, and [`dataset`] writes it all in the project's
-//! dataset layout (the same layout ingest writes for real data).
+//! dataset layout (the same layout ingest writes for real data); [`bag`] (native) records it as a ROS 2 bag.
 
+#[cfg(not(target_arch = "wasm32"))]
+pub mod bag;
 pub mod generate;
 pub mod raycast;
 pub mod sensors;

@@ -1,0 +1,212 @@
+//! `silvr ingest`: a ROS 2 bag (+ rig file) → the dataset layout; `--info` lists what a bag holds.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use silvr_core::gpu::Gpu;
+use silvr_core::ingest::config::RigConfig;
+use silvr_core::ingest::mcap;
+use silvr_core::ingest::rosbag::{self, IngestSummary};
+
+#[derive(clap::Args)]
+pub struct IngestCmd {
+    /// The bag (.mcap).
+    pub bag: PathBuf,
+    /// Rig file: the Oxford Spires sensor.yaml schema plus an optional `ingest:` block
+    /// (topics, keyframe rules); see `silvr synth --mcap` for a complete example.
+    #[arg(long, required_unless_present = "info")]
+    pub config: Option<PathBuf>,
+    /// Output dataset folder (must not exist unless --overwrite).
+    #[arg(long, required_unless_present = "info")]
+    pub out: Option<PathBuf>,
+    #[arg(long)]
+    pub overwrite: bool,
+    /// Override ingest.keyframe_distance (m).
+    #[arg(long)]
+    pub keyframe_distance: Option<f64>,
+    /// Override ingest.keyframe_angle_deg.
+    #[arg(long)]
+    pub keyframe_angle: Option<f64>,
+    /// Override ingest.max_keyframes.
+    #[arg(long)]
+    pub max_keyframes: Option<usize>,
+    /// Only list the bag's topics, types, counts and time span (no rig file needed).
+    #[arg(long)]
+    pub info: bool,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(c: IngestCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Result<()> {
+    if c.info {
+        return info(&c.bag, c.json);
+    }
+    let cfg_path = c.config.clone().expect("clap requires --config");
+    let out = c.out.clone().expect("clap requires --out");
+    let mut cfg = RigConfig::read(&cfg_path)?;
+    if let Some(d) = c.keyframe_distance {
+        cfg.ingest.keyframe_distance = d;
+    }
+    if let Some(a) = c.keyframe_angle {
+        cfg.ingest.keyframe_angle_deg = a;
+    }
+    if let Some(m) = c.max_keyframes {
+        cfg.ingest.max_keyframes = Some(m);
+    }
+    let gpu = open_gpu()?;
+    let cfg_dir = cfg_path.parent().unwrap_or(Path::new(".")).to_path_buf();
+    let summary = ingest(&gpu, &c.bag, &cfg, &cfg_dir, &out, c.overwrite)?;
+    if c.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        print_summary(&summary);
+    }
+    Ok(())
+}
+
+/// Runs the ingest with progress on stderr.
+pub fn ingest(
+    gpu: &Gpu,
+    bag: &Path,
+    cfg: &RigConfig,
+    cfg_dir: &Path,
+    out: &Path,
+    overwrite: bool,
+) -> Result<IngestSummary> {
+    let start = Instant::now();
+    let mut last = (String::new(), u64::MAX);
+    let summary = pollster::block_on(rosbag::ingest_bag(
+        bag,
+        cfg,
+        cfg_dir,
+        out,
+        overwrite,
+        gpu,
+        &mut |p| {
+            if (p.stage, p.done) != (last.0.as_str(), last.1) {
+                last = (p.stage.to_string(), p.done);
+                let of = if p.total > 0 {
+                    format!("/{}", p.total)
+                } else {
+                    " messages".into()
+                };
+                eprintln!(
+                    "[ingest] {} {}{of} ({:.1} s)",
+                    p.stage,
+                    p.done,
+                    start.elapsed().as_secs_f64()
+                );
+            }
+        },
+    ))
+    .with_context(|| format!("ingesting {} into {}", bag.display(), out.display()))?;
+    eprintln!(
+        "[ingest] wrote {} ({} keyframes, {} images, {} lidar points) in {:.1} s",
+        summary.path.display(),
+        summary.keyframes,
+        summary.images,
+        summary.lidar_points,
+        start.elapsed().as_secs_f64()
+    );
+    Ok(summary)
+}
+
+fn print_summary(s: &IngestSummary) {
+    println!(
+        "{}: {:.1} s of data ({:.3} .. {:.3})",
+        s.bag,
+        s.time_span.1 - s.time_span.0,
+        s.time_span.0,
+        s.time_span.1
+    );
+    println!(
+        "{:<60} {:<36} {:>9} {:>9}",
+        "topic", "type", "messages", "used"
+    );
+    for (topic, t) in &s.topics {
+        println!(
+            "{topic:<60} {:<36} {:>9} {:>9}",
+            t.schema, t.messages, t.used
+        );
+    }
+    println!(
+        "lidar range image: {} beams x {} columns",
+        s.lidar_beams, s.lidar_columns
+    );
+    if s.dropped.is_empty() {
+        println!("nothing dropped");
+    } else {
+        println!("dropped:");
+        for (why, n) in &s.dropped {
+            println!("  {n:>7}  {why}");
+        }
+    }
+    println!(
+        "dataset: {} ({} keyframes, {} images)",
+        s.path.display(),
+        s.keyframes,
+        s.images
+    );
+}
+
+fn info(bag: &Path, json: bool) -> Result<()> {
+    let s = mcap::summarize(bag)?;
+    if json {
+        let topics: serde_json::Map<String, serde_json::Value> = s
+            .topics
+            .iter()
+            .map(|(k, t)| {
+                (
+                    k.clone(),
+                    serde_json::json!({
+                        "type": t.schema_name,
+                        "encoding": t.message_encoding,
+                        "messages": t.messages,
+                        "decoded": t.decoded,
+                        "first_log_time_ns": t.first_log_time,
+                        "last_log_time_ns": t.last_log_time,
+                    }),
+                )
+            })
+            .collect();
+        let v = serde_json::json!({
+            "bag": bag.display().to_string(),
+            "messages": s.messages,
+            "duration_s": s.duration(),
+            "topics": topics,
+            "skipped": s.skipped,
+            "decode_errors": s.decode_errors,
+            "first_errors": s.first_errors,
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(());
+    }
+    println!(
+        "{}: {} messages over {:.3} s",
+        bag.display(),
+        s.messages,
+        s.duration()
+    );
+    println!(
+        "{:<60} {:<36} {:>9} {:>9}",
+        "topic", "type", "messages", "decoded"
+    );
+    for (topic, t) in &s.topics {
+        println!(
+            "{topic:<60} {:<36} {:>9} {:>9}",
+            t.schema_name, t.messages, t.decoded
+        );
+    }
+    for (why, n) in &s.skipped {
+        println!("not decoded: {n} ({why})");
+    }
+    if s.decode_errors > 0 {
+        println!("decode errors: {}", s.decode_errors);
+        for e in &s.first_errors {
+            println!("  {e}");
+        }
+    }
+    Ok(())
+}

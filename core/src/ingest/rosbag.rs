@@ -1,0 +1,1026 @@
+//! A ROS 2 bag → the project's dataset (`DATASET.md`), the path real data takes into training.
+//!
+//! Two streaming passes over the MCAP, so memory holds only the keyframes being assembled:
+//! 1. **Index**: per-topic counts; `/tf_static`; CameraInfo; the trajectory messages; the stamp and frame
+//!    of every image; every sweep's time span, beams and azimuth step.
+//! 2. **Assemble**: image sets (one image per camera within `camera_sync`), each with a trajectory pose
+//!    and a sweep that covers its time, thinned to keyframes by distance and angle; their images and
+//!    sweeps are decoded on the second pass, and each keyframe goes through the same lidar code as the
+//!    synthetic world (deskew to the image time, Newell normals on the range image, GPU projection, sky
+//!    mask — [`crate::lidar::products`]).
+//!
+//! Everything is written into a staging folder that is renamed only at the end ([`DatasetWriter`]).
+//! Calibration comes from the rig file when it has it, else from the bag (CameraInfo, `/tf_static`).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use serde::Serialize;
+
+use super::config::{se3_from_t_xyz_q_xyzw, ConfigError, RigConfig};
+use super::mcap::{BagError, BagReader};
+use super::ros::{self, CameraInfo, LidarScan, RgbImage, RosMessage};
+use super::tf::TfGraph;
+use crate::camera::CameraModel;
+use crate::dataset::{
+    self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, NsFrame, Transforms,
+};
+use crate::geometry::{Se3, Trajectory};
+use crate::gpu::{Gpu, GpuError};
+use crate::lidar::{deskew, images, products};
+use crate::pointcloud::{write_ply_bytes, PointCloud};
+use crate::rig::{Rig, RigCamera};
+
+/// Version of this writer, recorded in the manifest.
+pub const INGEST_VERSION: &str = "silvr-ingest 1";
+
+/// Why an ingest failed. Every message names the file it is about.
+#[derive(Debug, thiserror::Error)]
+pub enum IngestError {
+    #[error(transparent)]
+    Bag(#[from] BagError),
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+    #[error("GPU: {0}")]
+    Gpu(#[from] GpuError),
+    /// The bag and rig file together do not give what a dataset needs.
+    #[error("{file}: {reason}")]
+    Unusable { file: String, reason: String },
+}
+
+/// Progress of a long step.
+#[derive(Clone, Debug)]
+pub struct Progress<'a> {
+    pub stage: &'a str,
+    pub done: u64,
+    pub total: u64,
+}
+
+/// Messages of one topic.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct TopicCount {
+    pub schema: String,
+    pub messages: u64,
+    /// Messages this ingest used (decoded and part of a keyframe or calibration).
+    pub used: u64,
+}
+
+/// What an ingest read and wrote.
+#[derive(Clone, Debug, Serialize)]
+pub struct IngestSummary {
+    pub path: PathBuf,
+    pub bag: String,
+    pub keyframes: usize,
+    pub images: usize,
+    pub lidar_points: usize,
+    /// First and last log time (s) of the bag.
+    pub time_span: (f64, f64),
+    pub topics: BTreeMap<String, TopicCount>,
+    /// Why data was left out, with counts.
+    pub dropped: BTreeMap<String, u64>,
+    /// Beams and columns of the lidar range image, and where they came from.
+    pub lidar_beams: usize,
+    pub lidar_columns: usize,
+}
+
+/// One sweep as seen in pass 1.
+#[derive(Clone, Debug)]
+struct SweepRef {
+    index: u64,
+    /// Absolute time of its first and last point (s).
+    start: f64,
+    end: f64,
+}
+
+/// One image as seen in pass 1.
+#[derive(Clone, Debug)]
+struct ImageRef {
+    index: u64,
+    time: f64,
+}
+
+/// A keyframe chosen in pass 1 and filled in pass 2.
+struct Pending {
+    k: usize,
+    time: f64,
+    sweep: u64,
+    /// Per camera: the message index and its time.
+    images: Vec<ImageRef>,
+    got_images: Vec<Option<RgbImage>>,
+    got_sweep: Option<LidarScan>,
+}
+
+/// Everything pass 1 learns.
+#[derive(Default)]
+struct Index {
+    topics: BTreeMap<String, TopicCount>,
+    time_span: Option<(f64, f64)>,
+    tf_static: TfGraph,
+    infos: Vec<(String, CameraInfo)>,
+    /// Trajectory samples (stamp, pose) and the frames they relate.
+    trajectory: Vec<(f64, Se3)>,
+    trajectory_child: Option<String>,
+    images: Vec<Vec<ImageRef>>,
+    image_frames: Vec<Option<String>>,
+    sweeps: Vec<SweepRef>,
+    lidar_frame: Option<String>,
+    max_ring: Option<u16>,
+    azimuth_steps: Vec<f64>,
+    dropped: BTreeMap<String, u64>,
+}
+
+fn secs(t: ros::Time) -> f64 {
+    t.sec as f64 + t.nanosec as f64 * 1e-9
+}
+
+fn drop_count(d: &mut BTreeMap<String, u64>, why: impl Into<String>) {
+    *d.entry(why.into()).or_insert(0) += 1;
+}
+
+/// Median azimuth step between consecutive returns of one ring, over a sweep's rings (radians).
+fn azimuth_step(scan: &LidarScan) -> Option<f64> {
+    let rings = scan.rings.as_ref()?;
+    let mut per_ring: BTreeMap<u16, Vec<f64>> = BTreeMap::new();
+    for (p, &r) in scan.positions.iter().zip(rings) {
+        per_ring.entry(r).or_default().push(p.y.atan2(p.x));
+    }
+    let mut steps = Vec::new();
+    for az in per_ring.values_mut() {
+        az.sort_by(f64::total_cmp);
+        steps.extend(az.windows(2).map(|w| w[1] - w[0]).filter(|&d| d > 1e-5));
+    }
+    if steps.is_empty() {
+        return None;
+    }
+    let mid = steps.len() / 2;
+    steps.select_nth_unstable_by(mid, f64::total_cmp);
+    Some(steps[mid])
+}
+
+/// Column of a point for a lidar with `columns` azimuth steps per revolution: column c looks along azimuth
+/// 2πc/columns, counter-clockwise from the sensor's +x (the convention of the range image and sky mask).
+fn column_of(p: DVec3, columns: usize) -> u16 {
+    let az = p.y.atan2(p.x).rem_euclid(std::f64::consts::TAU);
+    let c = (az / std::f64::consts::TAU * columns as f64).round() as usize % columns;
+    c as u16
+}
+
+/// Reads `bag` with `cfg` (the rig file, its folder in `cfg_dir` for relative paths) and writes the
+/// dataset to `out`.
+pub async fn ingest_bag(
+    bag: &Path,
+    cfg: &RigConfig,
+    cfg_dir: &Path,
+    out: &Path,
+    overwrite: bool,
+    gpu: &Gpu,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<IngestSummary, IngestError> {
+    let file = bag.display().to_string();
+    let unusable = |reason: String| IngestError::Unusable {
+        file: file.clone(),
+        reason,
+    };
+    let ing = &cfg.ingest;
+    let cams = &cfg.sensor.cameras;
+    let bytes = std::fs::metadata(bag)
+        .map_err(|source| BagError::Io {
+            file: file.clone(),
+            source,
+        })?
+        .len();
+    // Refuse early, before reading a possibly huge bag, when the output cannot be written.
+    let writer = DatasetWriter::create(out, overwrite)?;
+
+    // ---- pass 1: index --------------------------------------------------------------------------
+    let mut ix = Index {
+        images: vec![Vec::new(); cams.len()],
+        image_frames: vec![None; cams.len()],
+        ..Index::default()
+    };
+    let cam_of_topic: BTreeMap<&str, usize> = cams
+        .iter()
+        .enumerate()
+        .map(|(i, c)| (c.topic.as_str(), i))
+        .collect();
+    let mut reader = BagReader::open(bag)?;
+    let mut n = 0u64;
+    for msg in reader.by_ref() {
+        let msg = msg?;
+        n += 1;
+        if n.is_multiple_of(2000) {
+            progress(Progress {
+                stage: "index",
+                done: n,
+                total: 0,
+            });
+        }
+        let t_log = msg.log_time() as f64 * 1e-9;
+        ix.time_span = Some(match ix.time_span {
+            None => (t_log, t_log),
+            Some((a, b)) => (a.min(t_log), b.max(t_log)),
+        });
+        let topic = msg.topic().to_string();
+        let entry = ix.topics.entry(topic.clone()).or_default();
+        entry.schema = msg.schema_name().to_string();
+        entry.messages += 1;
+        let decoded = match msg.decode() {
+            Ok(Ok(m)) => m,
+            Ok(Err(_skip)) => continue,
+            Err(e) => {
+                // A broken message on a topic we need is dropped and counted; elsewhere it is ignored.
+                let relevant = topic == ing.lidar_topic
+                    || cam_of_topic.contains_key(topic.as_str())
+                    || ing.trajectory_topic.as_deref() == Some(topic.as_str());
+                if relevant {
+                    drop_count(
+                        &mut ix.dropped,
+                        format!("{topic}: undecodable message ({e})"),
+                    );
+                }
+                continue;
+            }
+        };
+        let mut used = false;
+        match decoded {
+            RosMessage::Tf(tf) if topic == "/tf_static" => {
+                for t in &tf.transforms {
+                    if t.transform.is_finite() && t.transform.rot.length() > 0.5 {
+                        ix.tf_static
+                            .insert(&t.header.frame_id, &t.child_frame_id, t.transform);
+                    }
+                }
+                used = true;
+            }
+            RosMessage::CameraInfo(info) => {
+                ix.infos.push((topic.clone(), *info));
+                used = true;
+            }
+            RosMessage::PointCloud2(pc) if topic == ing.lidar_topic => match pc.to_scan() {
+                Ok(scan) => {
+                    let stamp = secs(scan.stamp);
+                    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+                    for &t in scan.times.iter().flatten() {
+                        lo = lo.min(t);
+                        hi = hi.max(t);
+                    }
+                    if scan.times.is_none() || scan.positions.is_empty() {
+                        drop_count(
+                            &mut ix.dropped,
+                            format!("{topic}: sweep without per-point time or points"),
+                        );
+                    } else {
+                        ix.lidar_frame.get_or_insert_with(|| scan.frame_id.clone());
+                        if let Some(r) = scan
+                            .rings
+                            .as_ref()
+                            .and_then(|r| r.iter().copied().filter(|&v| v != u16::MAX).max())
+                        {
+                            ix.max_ring = Some(ix.max_ring.map_or(r, |m| m.max(r)));
+                        }
+                        if ix.azimuth_steps.len() < 16 {
+                            if let Some(s) = azimuth_step(&scan) {
+                                ix.azimuth_steps.push(s);
+                            }
+                        }
+                        ix.sweeps.push(SweepRef {
+                            index: msg.index,
+                            start: stamp + lo,
+                            end: stamp + hi,
+                        });
+                        used = true;
+                    }
+                }
+                Err(e) => drop_count(&mut ix.dropped, format!("{topic}: bad PointCloud2 ({e})")),
+            },
+            RosMessage::Image(img) if cam_of_topic.contains_key(topic.as_str()) => {
+                let c = cam_of_topic[topic.as_str()];
+                ix.image_frames[c].get_or_insert_with(|| img.header.frame_id.clone());
+                ix.images[c].push(ImageRef {
+                    index: msg.index,
+                    time: secs(img.header.stamp),
+                });
+                used = true;
+            }
+            RosMessage::CompressedImage(img) if cam_of_topic.contains_key(topic.as_str()) => {
+                let c = cam_of_topic[topic.as_str()];
+                ix.image_frames[c].get_or_insert_with(|| img.header.frame_id.clone());
+                ix.images[c].push(ImageRef {
+                    index: msg.index,
+                    time: secs(img.header.stamp),
+                });
+                used = true;
+            }
+            m if ing.trajectory_topic.as_deref() == Some(topic.as_str())
+                && ing.trajectory_file.is_none() =>
+            {
+                used = true;
+                match m {
+                    RosMessage::Odometry(o) => {
+                        ix.trajectory_child
+                            .get_or_insert_with(|| o.child_frame_id.clone());
+                        ix.trajectory.push((secs(o.header.stamp), o.pose));
+                    }
+                    RosMessage::PoseStamped(p) => {
+                        ix.trajectory.push((secs(p.header.stamp), p.pose))
+                    }
+                    RosMessage::PoseWithCovarianceStamped(p) => {
+                        ix.trajectory.push((secs(p.header.stamp), p.pose))
+                    }
+                    RosMessage::Path(p) => {
+                        // A Path is republished whole; the last one is the final trajectory.
+                        ix.trajectory = p
+                            .poses
+                            .iter()
+                            .map(|q| (secs(q.header.stamp), q.pose))
+                            .collect();
+                    }
+                    other => {
+                        used = false;
+                        drop_count(
+                            &mut ix.dropped,
+                            format!("{topic}: {} is not a trajectory type", other_type(&other)),
+                        );
+                    }
+                }
+            }
+            _ => {}
+        }
+        if used {
+            ix.topics.get_mut(&topic).expect("inserted above").used += 1;
+        }
+    }
+    progress(Progress {
+        stage: "index",
+        done: n,
+        total: n,
+    });
+
+    // ---- calibration ----------------------------------------------------------------------------
+    let lidar_frame = ix.lidar_frame.clone().ok_or_else(|| {
+        unusable(format!(
+            "no usable sweeps on the lidar topic '{}' (topics: {})",
+            ing.lidar_topic,
+            ix.topics.keys().cloned().collect::<Vec<_>>().join(", ")
+        ))
+    })?;
+    let t_base_lidar = match &cfg.sensor.t_base_lidar {
+        Some(v) => se3_from_t_xyz_q_xyzw(v).map_err(|e| unusable(format!("T_base_lidar: {e}")))?,
+        None => ix.tf_static.lookup(&ing.base_frame, &lidar_frame).ok_or_else(|| {
+            unusable(format!(
+                "no T_base_lidar: the rig file has no T_base_lidar_t_xyz_q_xyzw and /tf_static does not \
+                 connect '{}' to the lidar frame '{lidar_frame}'",
+                ing.base_frame
+            ))
+        })?,
+    };
+    let mut rig_cams = Vec::with_capacity(cams.len());
+    for (i, c) in cams.iter().enumerate() {
+        if ix.images[i].is_empty() {
+            return Err(unusable(format!(
+                "camera {}: no images on '{}'",
+                c.label, c.topic
+            )));
+        }
+        let frame = ix.image_frames[i].clone().unwrap_or_default();
+        let model: CameraModel = if c.intrinsics.is_some() {
+            cfg.camera_model(c)
+                .map_err(|e| unusable(format!("camera {}: {e}", c.label)))?
+        } else {
+            let info = ix
+                .infos
+                .iter()
+                .find(|(t, info)| match &c.camera_info_topic {
+                    Some(want) => t == want,
+                    None => info.header.frame_id == frame,
+                })
+                .map(|(_, info)| info)
+                .ok_or_else(|| {
+                    unusable(format!(
+                        "camera {}: no intrinsics in the rig file and no CameraInfo {}",
+                        c.label,
+                        c.camera_info_topic
+                            .as_ref()
+                            .map_or(format!("with frame_id '{frame}'"), |t| format!("on '{t}'"))
+                    ))
+                })?;
+            info.camera_model()
+                .map_err(|e| unusable(format!("camera {}: CameraInfo: {e}", c.label)))?
+        };
+        let t_lidar_cam = match &c.t_cam_lidar {
+            Some(v) => se3_from_t_xyz_q_xyzw(v)
+                .map_err(|e| unusable(format!("camera {}: {e}", c.label)))?
+                .inverse(),
+            None => ix.tf_static.lookup(&lidar_frame, &frame).ok_or_else(|| {
+                unusable(format!(
+                    "camera {}: no T_cam_lidar in the rig file and /tf_static does not connect the \
+                     lidar frame '{lidar_frame}' to the image frame '{frame}'",
+                    c.label
+                ))
+            })?,
+        };
+        rig_cams.push(RigCamera {
+            name: c.label.clone(),
+            model,
+            t_lidar_cam,
+        });
+    }
+    let rig = Rig {
+        base_frame: ing.base_frame.clone(),
+        lidar_frame: lidar_frame.clone(),
+        t_base_lidar,
+        cameras: rig_cams,
+    };
+    rig.validate().map_err(|e| unusable(format!("rig: {e}")))?;
+
+    // ---- trajectory: T_world_lidar ----------------------------------------------------------------
+    let (samples, traj_frame, traj_source) = if let Some(f) = &ing.trajectory_file {
+        let path = cfg_dir.join(f);
+        let t = dataset::read_tum(&path)?;
+        let s: Vec<(f64, Se3)> = t
+            .stamps()
+            .iter()
+            .copied()
+            .zip(t.poses().iter().copied())
+            .collect();
+        let frame = ing
+            .trajectory_frame
+            .clone()
+            .unwrap_or_else(|| ing.base_frame.clone());
+        (s, frame, path.display().to_string())
+    } else {
+        let topic = ing.trajectory_topic.clone().unwrap_or_default();
+        let frame = ing
+            .trajectory_frame
+            .clone()
+            .or_else(|| ix.trajectory_child.clone().filter(|s| !s.is_empty()))
+            .unwrap_or_else(|| ing.base_frame.clone());
+        (std::mem::take(&mut ix.trajectory), frame, topic)
+    };
+    let t_traj_lidar = if traj_frame == lidar_frame {
+        Se3::IDENTITY
+    } else if traj_frame == ing.base_frame {
+        t_base_lidar
+    } else {
+        ix.tf_static.lookup(&traj_frame, &lidar_frame).ok_or_else(|| {
+            unusable(format!(
+                "the trajectory poses frame '{traj_frame}', which /tf_static does not connect to the lidar \
+                 frame '{lidar_frame}' (set ingest.trajectory_frame)"
+            ))
+        })?
+    };
+    let mut samples: Vec<(f64, Se3)> = samples
+        .into_iter()
+        .filter(|(t, p)| t.is_finite() && p.is_finite() && p.rot.length() > 0.5)
+        .map(|(t, p)| (t, Se3::new(p.rot.normalize(), p.trans) * t_traj_lidar))
+        .collect();
+    samples.sort_by(|a, b| a.0.total_cmp(&b.0));
+    samples.dedup_by(|b, a| b.0 <= a.0);
+    if samples.len() < 2 {
+        return Err(unusable(format!(
+            "the trajectory ({traj_source}) has {} usable poses; at least 2 are needed",
+            samples.len()
+        )));
+    }
+    let (stamps, poses): (Vec<f64>, Vec<Se3>) = samples.into_iter().unzip();
+    let trajectory =
+        Trajectory::new(stamps, poses).map_err(|e| unusable(format!("trajectory: {e}")))?;
+    let max_pose_gap = cfg.sensor.max_time_diff_camera_and_pose.unwrap_or(0.05);
+
+    // ---- lidar geometry ---------------------------------------------------------------------------
+    let beams = ix.max_ring.map(|r| r as usize + 1).ok_or_else(|| {
+        unusable(format!(
+            "the lidar topic '{}' has no 'ring' field: the range image (normals, sky) needs each point's beam",
+            ing.lidar_topic
+        ))
+    })?;
+    let columns = match ing.lidar_columns {
+        Some(c) => c as usize,
+        None => {
+            let mut s = ix.azimuth_steps.clone();
+            if s.is_empty() {
+                return Err(unusable(
+                    "cannot estimate the lidar's azimuth step (set ingest.lidar_columns)".into(),
+                ));
+            }
+            let mid = s.len() / 2;
+            s.select_nth_unstable_by(mid, f64::total_cmp);
+            (std::f64::consts::TAU / s[mid])
+                .round()
+                .clamp(16.0, 16384.0) as usize
+        }
+    };
+
+    // ---- keyframes --------------------------------------------------------------------------------
+    let mut dropped = std::mem::take(&mut ix.dropped);
+    for imgs in &mut ix.images {
+        imgs.sort_by(|a, b| a.time.total_cmp(&b.time));
+    }
+    ix.sweeps.sort_by(|a, b| a.start.total_cmp(&b.start));
+    let mut chosen: Vec<Pending> = Vec::new();
+    let mut last: Option<Se3> = None;
+    for lead in &ix.images[0] {
+        let t = lead.time;
+        if ing.start.is_some_and(|s| t < s) || ing.end.is_some_and(|e| t > e) {
+            drop_count(&mut dropped, "image set outside ingest.start/end");
+            continue;
+        }
+        if ing.max_keyframes.is_some_and(|m| chosen.len() >= m) {
+            break;
+        }
+        // One image per camera, nearest in time.
+        let mut set = vec![lead.clone()];
+        for imgs in &ix.images[1..] {
+            let j = imgs.partition_point(|r| r.time < t);
+            let best = [j.wrapping_sub(1), j]
+                .into_iter()
+                .filter_map(|j| imgs.get(j))
+                .min_by(|a, b| (a.time - t).abs().total_cmp(&(b.time - t).abs()));
+            match best {
+                Some(r) if (r.time - t).abs() <= ing.camera_sync => set.push(r.clone()),
+                _ => break,
+            }
+        }
+        if set.len() < cams.len() {
+            drop_count(
+                &mut dropped,
+                "image set: a camera has no image within camera_sync",
+            );
+            continue;
+        }
+        // A pose, with a trajectory sample close by.
+        let stamps = trajectory.stamps();
+        let j = stamps.partition_point(|&s| s < t);
+        let gap = [j.wrapping_sub(1), j]
+            .into_iter()
+            .filter_map(|j| stamps.get(j))
+            .map(|&s| (s - t).abs())
+            .fold(f64::INFINITY, f64::min);
+        let Some(pose) = trajectory.at(t).filter(|_| gap <= max_pose_gap) else {
+            drop_count(
+                &mut dropped,
+                "image set: no trajectory pose within max_time_diff_camera_and_pose",
+            );
+            continue;
+        };
+        // A sweep that covers the image time.
+        let Some(sweep) = ix
+            .sweeps
+            .iter()
+            .find(|s| s.start - 1e-3 <= t && t <= s.end + 1e-3)
+        else {
+            drop_count(&mut dropped, "image set: no sweep covers its time");
+            continue;
+        };
+        if let Some(prev) = last {
+            let moved = prev.distance_to(&pose);
+            let turned = prev.angle_to(&pose).to_degrees();
+            if moved < ing.keyframe_distance && turned < ing.keyframe_angle_deg {
+                drop_count(&mut dropped, "image set: not a keyframe (moved too little)");
+                continue;
+            }
+        }
+        last = Some(pose);
+        chosen.push(Pending {
+            k: chosen.len(),
+            time: t,
+            sweep: sweep.index,
+            got_images: vec![None; set.len()],
+            images: set,
+            got_sweep: None,
+        });
+    }
+    if chosen.is_empty() {
+        return Err(unusable(format!(
+            "no keyframe: no image set has all cameras, a trajectory pose and a covering sweep (dropped: {dropped:?})"
+        )));
+    }
+
+    // ---- pass 2: assemble and write ---------------------------------------------------------------
+    let mut out = Output {
+        w: writer,
+        files: BTreeMap::new(),
+    };
+    let mut want_image: BTreeMap<u64, Vec<(usize, usize)>> = BTreeMap::new();
+    let mut want_sweep: BTreeMap<u64, Vec<usize>> = BTreeMap::new();
+    for (p, kf) in chosen.iter().enumerate() {
+        for (c, r) in kf.images.iter().enumerate() {
+            want_image.entry(r.index).or_default().push((p, c));
+        }
+        want_sweep.entry(kf.sweep).or_default().push(p);
+    }
+    let total = chosen.len() as u64;
+    let mut slots: Vec<Option<Pending>> = chosen.into_iter().map(Some).collect();
+    let mut state = WriteState::default();
+    let reader = BagReader::open(bag)?;
+    for msg in reader {
+        let msg = msg?;
+        let mut touched = Vec::new();
+        if let Some(targets) = want_image.get(&msg.index) {
+            let decoded = match msg.decode() {
+                Ok(Ok(RosMessage::Image(img))) => img.to_rgb(),
+                Ok(Ok(RosMessage::CompressedImage(img))) => img.to_rgb(),
+                other => {
+                    return Err(unusable(format!(
+                        "message #{} on '{}' changed between passes: {other:?}",
+                        msg.index,
+                        msg.topic()
+                    )))
+                }
+            };
+            let rgb = decoded.map_err(|e| reader_decode(&file, &msg, e))?;
+            for &(p, c) in targets {
+                if let Some(kf) = slots[p].as_mut() {
+                    kf.got_images[c] = Some(rgb.clone());
+                    touched.push(p);
+                }
+            }
+        }
+        if let Some(targets) = want_sweep.get(&msg.index) {
+            let scan = match msg.decode() {
+                Ok(Ok(RosMessage::PointCloud2(pc))) => {
+                    pc.to_scan().map_err(|e| reader_decode(&file, &msg, e))?
+                }
+                other => {
+                    return Err(unusable(format!(
+                        "message #{} on '{}' changed between passes: {other:?}",
+                        msg.index,
+                        msg.topic()
+                    )))
+                }
+            };
+            for &p in targets {
+                if let Some(kf) = slots[p].as_mut() {
+                    kf.got_sweep = Some(scan.clone());
+                    touched.push(p);
+                }
+            }
+        }
+        for p in touched {
+            let done = slots[p].as_ref().is_some_and(|kf| {
+                kf.got_sweep.is_some() && kf.got_images.iter().all(Option::is_some)
+            });
+            if done {
+                let kf = slots[p].take().expect("checked");
+                write_keyframe(
+                    &mut out,
+                    &mut state,
+                    gpu,
+                    &rig,
+                    &trajectory,
+                    kf,
+                    beams,
+                    columns,
+                    ing.min_range,
+                    &file,
+                )
+                .await?;
+                progress(Progress {
+                    stage: "keyframes",
+                    done: state.records.len() as u64,
+                    total,
+                });
+            }
+        }
+    }
+    if let Some(kf) = slots.iter().flatten().next() {
+        return Err(unusable(format!(
+            "keyframe {}: its messages were not found on the second pass",
+            kf.k
+        )));
+    }
+
+    // ---- poses, calibration, transforms, manifest ----------------------------------------------
+    let WriteState {
+        mut frames,
+        records,
+        lidar_points,
+        times,
+        base_poses,
+        lidar_poses,
+        cam_poses,
+    } = state;
+    // Keyframes complete in bag order, which need not be time order: sort everything by keyframe.
+    let mut order: Vec<usize> = (0..records.len()).collect();
+    order.sort_by_key(|&i| records[i].index);
+    let pick = |v: &[Se3]| order.iter().map(|&i| v[i]).collect::<Vec<_>>();
+    let (base_poses, lidar_poses) = (pick(&base_poses), pick(&lidar_poses));
+    let cam_poses: Vec<Vec<Se3>> = cam_poses.iter().map(|v| pick(v)).collect();
+    let times: Vec<f64> = order.iter().map(|&i| times[i]).collect();
+    let records: Vec<KeyframeRecord> = order.iter().map(|&i| records[i].clone()).collect();
+    frames.sort_by_key(|f| f.keyframe);
+    out.put(
+        "poses/base_tum.txt",
+        dataset::tum_string(&times, &base_poses).as_bytes(),
+    )?;
+    out.put(
+        "poses/lidar_tum.txt",
+        dataset::tum_string(&times, &lidar_poses).as_bytes(),
+    )?;
+    out.put(
+        "poses/odometry_lidar_tum.txt",
+        dataset::tum_string(trajectory.stamps(), trajectory.poses()).as_bytes(),
+    )?;
+    for (ci, c) in rig.cameras.iter().enumerate() {
+        out.put(
+            &format!("poses/{}_tum.txt", c.name),
+            dataset::tum_string(&times, &cam_poses[ci]).as_bytes(),
+        )?;
+    }
+    out.put("calib/rig.json", json(&rig).as_bytes())?;
+    let lidar = LidarCalib {
+        topic: ing.lidar_topic.clone(),
+        frame: lidar_frame.clone(),
+        beams,
+        columns,
+        min_range: ing.min_range,
+    };
+    out.put("calib/lidar.json", json(&lidar).as_bytes())?;
+    let n_images = frames.len();
+    let (mut train, mut val) = (Vec::new(), Vec::new());
+    for f in &frames {
+        if f.keyframe.unwrap_or(0) % 10 == 5 {
+            val.push(f.file_path.clone());
+        } else {
+            train.push(f.file_path.clone());
+        }
+    }
+    let transforms = Transforms {
+        frames,
+        depth_unit_scale_factor: Some(1.0 / images::DEPTH_SCALE as f64),
+        train_filenames: train,
+        val_filenames: val,
+    };
+    out.put("transforms.json", json(&transforms).as_bytes())?;
+    let mut summary = IngestSummary {
+        path: out.w.target.clone(),
+        bag: file.clone(),
+        keyframes: records.len(),
+        images: n_images,
+        lidar_points,
+        time_span: ix.time_span.unwrap_or((0.0, 0.0)),
+        topics: ix.topics,
+        dropped,
+        lidar_beams: beams,
+        lidar_columns: columns,
+    };
+    let manifest = Manifest {
+        layout_version: dataset::LAYOUT_VERSION,
+        generator: INGEST_VERSION,
+        source: Source {
+            bag: file.clone(),
+            bytes,
+            trajectory: traj_source,
+            trajectory_frame: traj_frame,
+        },
+        config: cfg,
+        keyframes: &records,
+        cameras: rig.cameras.iter().map(|c| c.name.as_str()).collect(),
+        summary: &summary,
+        encodings: encodings(),
+        files: out.files.clone(),
+    };
+    out.put("manifest.json", json(&manifest).as_bytes())?;
+    summary.path = out.w.commit()?;
+    Ok(summary)
+}
+
+fn other_type(m: &RosMessage) -> &'static str {
+    match m {
+        RosMessage::PointCloud2(_) => "PointCloud2",
+        RosMessage::Image(_) => "Image",
+        RosMessage::CompressedImage(_) => "CompressedImage",
+        RosMessage::CameraInfo(_) => "CameraInfo",
+        RosMessage::Tf(_) => "TFMessage",
+        RosMessage::Odometry(_) => "Odometry",
+        RosMessage::Path(_) => "Path",
+        RosMessage::PoseStamped(_) => "PoseStamped",
+        RosMessage::PoseWithCovarianceStamped(_) => "PoseWithCovarianceStamped",
+    }
+}
+
+fn reader_decode(file: &str, msg: &super::mcap::BagMessage, e: ros::DecodeError) -> IngestError {
+    IngestError::Bag(BagError::Decode {
+        file: file.to_string(),
+        index: msg.index,
+        topic: msg.topic().to_string(),
+        log_time: msg.log_time(),
+        source: Box::new(e),
+    })
+}
+
+fn json(v: &impl Serialize) -> String {
+    serde_json::to_string_pretty(v).expect("plain data serialises")
+}
+
+/// The dataset being written, with every file's size for the manifest.
+struct Output {
+    w: DatasetWriter,
+    files: BTreeMap<String, u64>,
+}
+
+impl Output {
+    fn put(&mut self, rel: &str, bytes: &[u8]) -> Result<(), DatasetError> {
+        self.w.write(rel, bytes)?;
+        self.files.insert(rel.to_string(), bytes.len() as u64);
+        Ok(())
+    }
+}
+
+#[derive(Default)]
+struct WriteState {
+    frames: Vec<NsFrame>,
+    records: Vec<KeyframeRecord>,
+    lidar_points: usize,
+    times: Vec<f64>,
+    base_poses: Vec<Se3>,
+    lidar_poses: Vec<Se3>,
+    cam_poses: Vec<Vec<Se3>>,
+}
+
+/// Per-keyframe record in the manifest (same keys as the synthetic generator's).
+#[derive(Clone, Debug, Serialize)]
+struct KeyframeRecord {
+    index: usize,
+    sweep_start: f64,
+    image_time: f64,
+    raw_points: usize,
+    deskewed_dropped: usize,
+}
+
+#[derive(Serialize)]
+struct LidarCalib {
+    topic: String,
+    frame: String,
+    beams: usize,
+    columns: usize,
+    min_range: f64,
+}
+
+#[derive(Serialize)]
+struct Source {
+    bag: String,
+    bytes: u64,
+    trajectory: String,
+    trajectory_frame: String,
+}
+
+#[derive(Serialize)]
+struct Manifest<'a> {
+    layout_version: u32,
+    generator: &'a str,
+    source: Source,
+    config: &'a RigConfig,
+    keyframes: &'a [KeyframeRecord],
+    cameras: Vec<&'a str>,
+    summary: &'a IngestSummary,
+    encodings: BTreeMap<&'static str, &'static str>,
+    files: BTreeMap<String, u64>,
+}
+
+fn encodings() -> BTreeMap<&'static str, &'static str> {
+    BTreeMap::from([
+        ("images", "8-bit RGB PNG as decoded from the bag"),
+        ("lidar_depth", "16-bit PNG, Euclidean range from the camera centre x 256 (m), 0 = no return, 65535 = sky"),
+        ("lidar_normals", "8-bit RGB PNG, (n + 1) / 2 x 255, unit normal in the OpenCV camera frame facing the camera, 128 = none"),
+        ("sky_mask", "8-bit PNG, 255 = sky (from lidar no-returns and the image)"),
+        ("lidar/raw", "PLY, points in the sensor frame at their firing time; time_offset (s) from the header stamp"),
+        ("lidar/deskewed", "PLY, points in the sensor frame at the keyframe's image time"),
+        ("poses", "TUM: t tx ty tz qx qy qz qw (bag time, s), T_world_<frame>; odometry = the trajectory used"),
+        ("transforms.json", "nerfstudio: c2w in OpenGL axes, cx/cy with pixel centres at +0.5"),
+    ])
+}
+
+#[allow(clippy::too_many_arguments)]
+async fn write_keyframe(
+    out: &mut Output,
+    st: &mut WriteState,
+    gpu: &Gpu,
+    rig: &Rig,
+    trajectory: &Trajectory,
+    kf: Pending,
+    beams: usize,
+    columns: usize,
+    min_range: f64,
+    file: &str,
+) -> Result<(), IngestError> {
+    let k = kf.k;
+    let name = format!("{k:05}");
+    let scan = kf.got_sweep.expect("complete");
+    let stamp = secs(scan.stamp);
+    let rel_times = scan.times.clone().unwrap_or_default();
+    let abs_times: Vec<f64> = rel_times.iter().map(|&r| stamp + r).collect();
+    let rings: Vec<u16> = scan.rings.clone().unwrap_or_default();
+    let column: Vec<u16> = scan
+        .positions
+        .iter()
+        .map(|&p| column_of(p, columns))
+        .collect();
+    let desk = deskew::deskew(&scan.positions, &abs_times, trajectory, kf.time).map_err(|e| {
+        IngestError::Unusable {
+            file: file.to_string(),
+            reason: format!("keyframe {k}: {e}"),
+        }
+    })?;
+    let cloud = |positions: &[DVec3]| {
+        let mut pc = PointCloud::from_positions(positions.to_vec());
+        let n = positions.len();
+        pc.set_scalar(
+            "intensity",
+            scan.intensities.clone().unwrap_or_else(|| vec![0.0; n]),
+        );
+        pc.set_scalar("ring", rings.iter().map(|&r| r as f32).collect());
+        pc.set_scalar("column", column.iter().map(|&c| c as f32).collect());
+        pc.set_scalar("time_offset", rel_times.iter().map(|&t| t as f32).collect());
+        pc
+    };
+    let ply = |pc: &PointCloud, rel: &str| {
+        write_ply_bytes(pc).map_err(|e| IngestError::Unusable {
+            file: file.to_string(),
+            reason: format!("{rel}: {e}"),
+        })
+    };
+    let rel = format!("lidar/raw/{name}.ply");
+    out.put(&rel, &ply(&cloud(&scan.positions), &rel)?)?;
+    let rel = format!("lidar/deskewed/{name}.ply");
+    out.put(&rel, &ply(&cloud(&desk.positions), &rel)?)?;
+
+    let t_world_lidar = trajectory
+        .at(kf.time)
+        .expect("checked when choosing keyframes");
+    let rgbs: Vec<RgbImage> = kf
+        .got_images
+        .into_iter()
+        .map(|i| i.expect("complete"))
+        .collect();
+    for (c, img) in rig.cameras.iter().zip(&rgbs) {
+        if (img.width, img.height) != (c.model.width, c.model.height) {
+            return Err(IngestError::Unusable {
+                file: file.to_string(),
+                reason: format!(
+                    "camera {}: image is {}x{}, the calibration says {}x{}",
+                    c.name, img.width, img.height, c.model.width, c.model.height
+                ),
+            });
+        }
+    }
+    let sweep = products::SweepInput {
+        positions: &desk.positions,
+        ring: &rings,
+        column: &column,
+        beams,
+        columns,
+        min_range,
+        t_world_lidar,
+    };
+    let cams_rgb: Vec<(&RigCamera, &[[u8; 3]])> = rig
+        .cameras
+        .iter()
+        .zip(&rgbs)
+        .map(|(c, i)| (c, i.pixels.as_slice()))
+        .collect();
+    let made = products::keyframe_products(gpu, &sweep, &cams_rgb).await?;
+    if st.cam_poses.is_empty() {
+        st.cam_poses = vec![Vec::new(); rig.cameras.len()];
+    }
+    for (ci, ((cam, p), img)) in rig.cameras.iter().zip(made).zip(&rgbs).enumerate() {
+        let (cn, m) = (cam.name.as_str(), &cam.model);
+        let (w, h) = (m.width, m.height);
+        // Each camera at its own trigger time (within camera_sync of the set's).
+        let t_cam = kf.images[ci].time;
+        let t_world_cam = trajectory.at(t_cam).unwrap_or(t_world_lidar) * cam.t_lidar_cam;
+        st.cam_poses[ci].push(t_world_cam);
+        let image_rel = format!("images/{cn}/{name}.png");
+        out.put(&image_rel, &png_rgb(w, h, &img.pixels))?;
+        let depth_rel = format!("lidar_depth/{cn}/{name}.png");
+        let normal_rel = format!("lidar_normals/{cn}/{name}.png");
+        let sky_rel = format!("sky_mask/{cn}/{name}.png");
+        out.put(&depth_rel, &png_gray16(w, h, &p.depth))?;
+        out.put(&normal_rel, &png_rgb(w, h, &p.normals))?;
+        out.put(&sky_rel, &png_gray8(w, h, &p.sky))?;
+        let mut f = NsFrame::new(image_rel, m, &t_world_cam);
+        f.depth_file_path = Some(depth_rel);
+        f.normal_file_path = Some(normal_rel);
+        f.sky_mask_path = Some(sky_rel);
+        f.camera = Some(cn.to_string());
+        f.keyframe = Some(k);
+        f.time = Some(t_cam);
+        st.frames.push(f);
+    }
+    st.records.push(KeyframeRecord {
+        index: k,
+        sweep_start: stamp,
+        image_time: kf.time,
+        raw_points: scan.positions.len(),
+        deskewed_dropped: desk.dropped,
+    });
+    st.lidar_points += scan.positions.len();
+    st.times.push(kf.time);
+    st.lidar_poses.push(t_world_lidar);
+    st.base_poses
+        .push(t_world_lidar * rig.t_base_lidar.inverse());
+    Ok(())
+}
