@@ -92,8 +92,16 @@ def write_ply_binary_be_float(path, xyz32):
         f.write(xyz32.astype(">f4").tobytes())
 
 
+def target_dir():
+    meta = subprocess.run(["cargo", "metadata", "-q", "--format-version", "1", "--no-deps"], cwd=ROOT,
+                          check=True, capture_output=True, text=True)
+    return json.loads(meta.stdout)["target_directory"]
+
+
 def cargo_example(name, *args):
-    cmd = ["cargo", "run", "-q", "-p", "silvr-core", "--example", name, "--", *args]
+    # The examples built with the whole workspace's feature set (as `cargo test --workspace` builds them):
+    # `cargo run -p silvr-core` would resolve features for one package and recompile the engine.
+    cmd = [os.path.join(target_dir(), "debug", "examples", name), *args]
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     if res.returncode != 0:
         print(res.stdout)
@@ -225,7 +233,7 @@ def main():
     tmp = tempfile.mkdtemp(prefix="silvr-crosscheck-")
     print(f"temp dir: {tmp}")
     print("building examples ...", flush=True)
-    subprocess.run(["cargo", "build", "-q", "-p", "silvr-core", "--examples"], cwd=ROOT, check=True)
+    subprocess.run(["cargo", "build", "-q", "--workspace", "--examples"], cwd=ROOT, check=True)
 
     # GT-like cloud: points on a few planes plus scattered points, with exact duplicates (ties).
     n_gt = 6000

@@ -210,3 +210,126 @@ fn info(bag: &Path, json: bool) -> Result<()> {
     }
     Ok(())
 }
+
+#[derive(clap::Args)]
+pub struct BenchIngestCmd {
+    /// A bag to read; default: the `ci` synthetic world recorded as a bag in a temporary folder.
+    pub bag: Option<PathBuf>,
+    /// Its rig file (default: BAG with the extension `rig.yaml`, as `silvr synth --mcap` writes it).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Timed repetitions of each measurement (the best is reported).
+    #[arg(long, default_value_t = 3)]
+    pub reps: usize,
+}
+
+/// Ingest throughput, JSON on stdout: MB/s and messages/s of reading + decoding every message (clouds to
+/// points, images to RGB), and of the whole ingest (two passes, deskew, normals, GPU projection, PNGs).
+pub fn bench(c: BenchIngestCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Result<()> {
+    use silvr_core::ingest::ros::RosMessage;
+    let gpu = open_gpu()?;
+    let tmp = std::env::temp_dir().join(format!("silvr-bench-ingest-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp)?;
+    let _cleanup = RemoveOnDrop(tmp.clone());
+    let (bag, cfg_path) = match c.bag {
+        Some(b) => {
+            let cfg = c.config.unwrap_or_else(|| b.with_extension("rig.yaml"));
+            (b, cfg)
+        }
+        None => {
+            let preset = silvr_core::synthetic::Preset::ci(1);
+            let bag = tmp.join("scene.mcap");
+            let mut rec = silvr_core::synthetic::bag::BagRecorder::create(&bag)?;
+            eprintln!("[bench-ingest] recording the ci world as a bag ...");
+            pollster::block_on(silvr_core::synthetic::generate::generate_recording(
+                &preset,
+                &gpu,
+                &tmp.join("synth"),
+                false,
+                &mut |_| {},
+                Some(&mut rec),
+            ))?;
+            let cfg = tmp.join("scene.rig.yaml");
+            std::fs::write(
+                &cfg,
+                silvr_core::synthetic::bag::rig_config(&preset).to_yaml(),
+            )?;
+            (bag, cfg)
+        }
+    };
+    let cfg = RigConfig::read(&cfg_path)?;
+    let mb = std::fs::metadata(&bag)?.len() as f64 / 1e6;
+    let reps = c.reps.max(1);
+
+    // 1. Read + decode everything.
+    let mut best_decode = f64::INFINITY;
+    let (mut messages, mut points, mut pixels) = (0u64, 0u64, 0u64);
+    for _ in 0..reps {
+        let t = Instant::now();
+        (messages, points, pixels) = (0, 0, 0);
+        for msg in mcap::BagReader::open(&bag)? {
+            let msg = msg?;
+            messages += 1;
+            match msg.decode() {
+                Ok(Ok(RosMessage::PointCloud2(pc))) => {
+                    points += pc.to_scan()?.positions.len() as u64
+                }
+                Ok(Ok(RosMessage::Image(img))) => pixels += img.to_rgb()?.pixels.len() as u64,
+                Ok(Ok(RosMessage::CompressedImage(img))) => {
+                    pixels += img.to_rgb()?.pixels.len() as u64
+                }
+                _ => {}
+            }
+        }
+        best_decode = best_decode.min(t.elapsed().as_secs_f64());
+    }
+    // 2. The whole ingest.
+    let mut best_ingest = f64::INFINITY;
+    let mut keyframes = 0;
+    let cfg_dir = cfg_path.parent().unwrap_or(Path::new(".")).to_path_buf();
+    for r in 0..reps {
+        let out = tmp.join(format!("ingested-{r}"));
+        let t = Instant::now();
+        let s = pollster::block_on(rosbag::ingest_bag(
+            &bag,
+            &cfg,
+            &cfg_dir,
+            &out,
+            false,
+            &gpu,
+            &mut |_| {},
+        ))?;
+        best_ingest = best_ingest.min(t.elapsed().as_secs_f64());
+        keyframes = s.keyframes;
+        let _ = std::fs::remove_dir_all(&out);
+    }
+    let v = serde_json::json!({
+        "bag": bag.display().to_string(),
+        "bag_mb": mb,
+        "adapter": gpu.report(),
+        "decode": {
+            "seconds": best_decode,
+            "mb_per_s": mb / best_decode,
+            "messages_per_s": messages as f64 / best_decode,
+            "points_per_s": points as f64 / best_decode,
+            "megapixels_per_s": pixels as f64 / best_decode / 1e6,
+        },
+        "ingest": {
+            "seconds": best_ingest,
+            "mb_per_s": mb / best_ingest,
+            "keyframes": keyframes,
+            "keyframes_per_s": keyframes as f64 / best_ingest,
+            "points_per_s": points as f64 / best_ingest,
+        },
+    });
+    println!("{}", serde_json::to_string_pretty(&v)?);
+    Ok(())
+}
+
+struct RemoveOnDrop(PathBuf);
+
+impl Drop for RemoveOnDrop {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}

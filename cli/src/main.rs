@@ -60,6 +60,8 @@ enum Command {
     /// A ROS 2 bag (MCAP) + rig file → a dataset: deskewed lidar, per-camera depth, normals and sky masks,
     /// poses, transforms.json. `--info` lists a bag's topics.
     Ingest(ingest::IngestCmd),
+    /// Ingest throughput: MB/s of MCAP reading + decoding, and of the whole bag → dataset (JSON).
+    BenchIngest(ingest::BenchIngestCmd),
     /// Score a reconstruction against ground truth: accuracy, completeness, precision/recall/F.
     Eval {
         /// Reconstruction point cloud (PLY).
@@ -237,6 +239,7 @@ fn main() {
             Some(bag) => synth_bag(&preset, seed, &out, overwrite, &bag),
         },
         Command::Ingest(c) => ingest::run(c, open_gpu),
+        Command::BenchIngest(c) => ingest::bench(c, open_gpu),
         Command::Eval {
             reconstruction,
             gt,

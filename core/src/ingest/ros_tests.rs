@@ -740,3 +740,90 @@ fn dispatch_by_schema_name() {
     assert_eq!(canonical_type("a/msg/B"), "a/msg/B");
     assert_eq!(canonical_type("a/B"), "a/msg/B");
 }
+
+/// Writes the CDR fuzz target's seed corpus (`fuzz/seeds/cdr/`: one file per known type, the first byte
+/// selecting the type as the target reads it). Regenerate with
+/// `cargo test -p silvr-core --lib write_cdr_fuzz_seeds -- --ignored`.
+#[test]
+#[ignore]
+fn write_cdr_fuzz_seeds() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz/seeds/cdr");
+    std::fs::create_dir_all(&dir).unwrap();
+    let fields = vec![
+        PointField::new("x", 0, PointField::FLOAT32),
+        PointField::new("y", 4, PointField::FLOAT32),
+        PointField::new("z", 8, PointField::FLOAT32),
+        PointField::new("intensity", 12, PointField::FLOAT32),
+        PointField::new("ring", 16, PointField::UINT16),
+        PointField::new("timestamp", 18, PointField::FLOAT64),
+    ];
+    let (data, mut pc) = cloud(fields, 26, 3, 1, 78, false, |k| {
+        vec![
+            1.0 + k as f64,
+            2.0,
+            0.5,
+            10.0,
+            k as f64,
+            1.7e9 + 0.01 * k as f64,
+        ]
+    });
+    pc.data = &data;
+    let px = [10u8, 20, 30, 40, 50, 60, 70, 80, 90, 100, 110, 120];
+    let png = crate::dataset::png_rgb(2, 2, &[[1, 2, 3], [4, 5, 6], [7, 8, 9], [10, 11, 12]]);
+    let tf = TfMessage {
+        transforms: vec![TransformStamped {
+            header: header(1, 2, "base_link"),
+            child_frame_id: "lidar".into(),
+            transform: pose([0.0, 0.0, 0.124], [0.0, 0.0, 1.0, 0.0]),
+        }],
+    };
+    let odo = Odometry {
+        header: header(3, 4, "odom"),
+        child_frame_id: "base_link".into(),
+        pose: pose([1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0]),
+        pose_covariance: [0.0; 36],
+        linear: DVec3::X,
+        angular: DVec3::Z,
+        twist_covariance: [0.0; 36],
+    };
+    let ps = PoseStamped {
+        header: header(5, 6, "map"),
+        pose: pose([1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]),
+    };
+    let seeds: Vec<(&str, Vec<u8>)> = vec![
+        (PointCloud2::MSG, pc.encode()),
+        (Image::MSG, image("rgb8", 2, 2, 6, &px).encode()),
+        (
+            CompressedImage::MSG,
+            CompressedImage {
+                header: header(0, 0, "cam"),
+                format: "png".into(),
+                data: &png,
+            }
+            .encode(),
+        ),
+        (
+            CameraInfo::MSG,
+            camera_info("equidistant", vec![0.1, 0.01, 0.0, 0.0]).encode(),
+        ),
+        (TfMessage::MSG, tf.encode()),
+        (Odometry::MSG, odo.encode()),
+        (
+            Path::MSG,
+            Path {
+                header: header(7, 8, "map"),
+                poses: vec![ps.clone(), ps.clone()],
+            }
+            .encode(),
+        ),
+        (PoseStamped::MSG, ps.encode()),
+    ];
+    for (ty, payload) in seeds {
+        let pick = KNOWN_TYPES.iter().position(|t| *t == ty).unwrap() as u8;
+        decode(ty, &payload).unwrap().unwrap();
+        let mut bytes = vec![pick];
+        bytes.extend_from_slice(&payload);
+        let name = ty.rsplit('/').next().unwrap();
+        std::fs::write(dir.join(name), bytes).unwrap();
+    }
+}
