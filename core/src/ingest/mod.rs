@@ -9,11 +9,13 @@
 //! - [`rosbag`] (native only): a bag + rig file → the dataset layout (`silvr ingest`).
 //! - [`writer`] (native only): writes ROS 2 MCAP bags (the synthetic world as a bag, round-trip tests).
 //! - [`pcd`]: PCL's PCD (ascii, binary, binary_compressed) into a [`crate::pointcloud::PointCloud`].
+//! - [`colmap`]: COLMAP text models (`cameras.txt`, `images.txt`, `points3D.txt`), read and written.
 //!
 //! Every reader treats its input as untrusted: errors, never panics, and no allocation larger than the
 //! input justifies.
 
 pub mod cdr;
+pub mod colmap;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod config;
 #[cfg(not(target_arch = "wasm32"))]
