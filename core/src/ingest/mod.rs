@@ -12,6 +12,7 @@
 //! - [`colmap`]: COLMAP text models (`cameras.txt`, `images.txt`, `points3D.txt`), read and written.
 //! - [`poses`]: trajectories from TUM, KITTI odometry, Oxford Spires `slam-poses.csv` and EuRoC `data.csv`
 //!   (with format detection), and writers for KITTI and Spires.
+//! - [`kitti`]: KITTI velodyne `.bin` scans and nuScenes `.pcd.bin` sweeps (headerless f32 records).
 //!
 //! Every reader treats its input as untrusted: errors, never panics, and no allocation larger than the
 //! input justifies.
@@ -20,6 +21,7 @@ pub mod cdr;
 pub mod colmap;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod config;
+pub mod kitti;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod mcap;
 pub mod pcd;
