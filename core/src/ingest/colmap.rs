@@ -756,6 +756,12 @@ mod tests {
     #[test]
     fn reads_the_hand_written_model() {
         let m = example();
+        // Windows line endings read the same.
+        let crlf = |t: &str| t.replace('\n', "\r\n");
+        assert_eq!(
+            parse_model("", &crlf(CAMERAS), &crlf(IMAGES), &crlf(POINTS)).unwrap(),
+            m
+        );
         assert_eq!(m.cameras.len(), 2);
         let c1 = m.cameras[&1];
         assert_eq!(

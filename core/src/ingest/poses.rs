@@ -8,7 +8,7 @@
 //!   is none, from frame index × a given period. The 3x3 blocks are printed with 6-9 digits, so they are
 //!   projected onto the nearest rotation (a block farther than [`KITTI_ORTHONORMAL_TOLERANCE`] from
 //!   orthonormal, or a reflection, is an error: it is not a pose).
-//! - **Oxford Spires** (`slam-poses.csv`, also what VILENS and Super-LIO export): a `# counter, sec, nsec,
+//! - **Oxford Spires** (`slam-poses.csv`, the pose CSV of the Oxford DRS mapping tools): a `# counter, sec, nsec,
 //!   x, y, z, qx, qy, qz, qw` header and comma-separated rows, time = sec + nsec·1e-9.
 //! - **EuRoC** ground truth (`state_groundtruth_estimate0/data.csv`, Vicon/Leica `data.csv`):
 //!   `#timestamp [ns], p_RS_R_x, p_RS_R_y, p_RS_R_z, q_RS_w, q_RS_x, q_RS_y, q_RS_z, ...` with the quaternion
@@ -49,7 +49,7 @@ pub enum PoseError {
     },
     #[error("{file}: {reason}")]
     Invalid { file: String, reason: String },
-    /// TUM files are parsed by [`crate::dataset::parse_tum`], whose errors already name file and line.
+    /// TUM parse errors (from [`crate::dataset::parse_tum`], already naming file and line) and write errors.
     #[error(transparent)]
     Dataset(#[from] DatasetError),
 }
@@ -872,6 +872,38 @@ mod tests {
         assert_eq!(detect_format("a.csv", "5,1,2,3,1,0,0,0,9\n"), Some(Euroc));
         assert_eq!(detect_format("a.txt", "1 2 3\n"), None);
         assert_eq!(detect_format("a.txt", ""), None);
+    }
+
+    #[test]
+    fn arbitrary_text_never_panics() {
+        // Cheap deterministic fuzz: mutate the sample files character by character.
+        let kitti_times = kitti_times_string(&sample());
+        let tum = tum_string(&sample());
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        for base in [KITTI, SPIRES, EUROC, tum.as_str(), kitti_times.as_str()] {
+            for _ in 0..300 {
+                let mut b = base.as_bytes().to_vec();
+                for _ in 0..4 {
+                    state ^= state << 13;
+                    state ^= state >> 7;
+                    state ^= state << 17;
+                    let i = (state % b.len() as u64) as usize;
+                    let alphabet = b" ,-.0123456789e#\nNaix";
+                    b[i] = alphabet[(state >> 32) as usize % alphabet.len()];
+                }
+                let text = String::from_utf8_lossy(&b);
+                let _ = detect_format("f", &text);
+                let _ = parse_tum(&text, "f");
+                let _ = parse_spires(&text, "f");
+                let _ = parse_euroc(&text, "f");
+                let _ = parse_kitti(&text, "f", KittiTimes::Period(0.1));
+                let times = KittiTimes::Text {
+                    text: &text,
+                    name: "t",
+                };
+                let _ = parse_kitti(KITTI, "f", times);
+            }
+        }
     }
 
     #[test]
