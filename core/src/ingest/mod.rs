@@ -9,16 +9,23 @@
 //! - [`rosbag`] (native only): a bag + rig file → the dataset layout (`silvr ingest`).
 //! - [`writer`] (native only): writes ROS 2 MCAP bags (the synthetic world as a bag, round-trip tests).
 //! - [`pcd`]: PCL's PCD (ascii, binary, binary_compressed) into a [`crate::pointcloud::PointCloud`].
+//! - [`colmap`]: COLMAP text models (`cameras.txt`, `images.txt`, `points3D.txt`), read and written.
+//! - [`poses`]: trajectories from TUM, KITTI odometry, Oxford Spires `slam-poses.csv` and EuRoC `data.csv`
+//!   (with format detection), and writers for KITTI and Spires.
+//! - [`kitti`]: KITTI velodyne `.bin` scans and nuScenes `.pcd.bin` sweeps (headerless f32 records).
 //!
 //! Every reader treats its input as untrusted: errors, never panics, and no allocation larger than the
 //! input justifies.
 
 pub mod cdr;
+pub mod colmap;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod config;
+pub mod kitti;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod mcap;
 pub mod pcd;
+pub mod poses;
 pub mod ros;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod rosbag;
