@@ -333,3 +333,48 @@ impl Drop for RemoveOnDrop {
         let _ = std::fs::remove_dir_all(&self.0);
     }
 }
+
+#[derive(clap::Args)]
+pub struct ImportCmd {
+    /// Source layout: `dgp` (a DGP scene folder: scene_*.json, calibration/, point_cloud/, rgb/).
+    pub format: String,
+    /// The source folder.
+    pub source: PathBuf,
+    /// Output dataset folder (must not exist unless --overwrite).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub overwrite: bool,
+    /// Integer image downscale (intrinsics follow).
+    #[arg(long, default_value_t = 1)]
+    pub downscale: u32,
+}
+
+/// `silvr import FORMAT SOURCE --out DIR`: other dataset layouts → ours.
+pub fn import(c: ImportCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Result<()> {
+    use silvr_core::ingest::dgp;
+    match c.format.as_str() {
+        "dgp" => {
+            let gpu = open_gpu()?;
+            let start = Instant::now();
+            let s = pollster::block_on(dgp::import_dgp(
+                &c.source,
+                &c.out,
+                c.overwrite,
+                dgp::DgpOptions {
+                    downscale: c.downscale,
+                    ..Default::default()
+                },
+                &gpu,
+                &mut |done, total| eprintln!("[import] sample {done}/{total}"),
+            ))
+            .with_context(|| {
+                format!("importing {} into {}", c.source.display(), c.out.display())
+            })?;
+            eprintln!("[import] done in {:.1} s", start.elapsed().as_secs_f64());
+            println!("{}", serde_json::to_string_pretty(&s)?);
+            Ok(())
+        }
+        other => anyhow::bail!("unknown import format {other:?} (supported: dgp)"),
+    }
+}

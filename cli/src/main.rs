@@ -60,6 +60,8 @@ enum Command {
     /// A ROS 2 bag (MCAP) + rig file → a dataset: deskewed lidar, per-camera depth, normals and sky masks,
     /// poses, transforms.json. `--info` lists a bag's topics.
     Ingest(ingest::IngestCmd),
+    /// Another dataset layout → a dataset (`dgp`: a DGP scene with lidar .npz sweeps and pinhole cameras).
+    Import(ingest::ImportCmd),
     /// Ingest throughput: MB/s of MCAP reading + decoding, and of the whole bag → dataset (JSON).
     BenchIngest(ingest::BenchIngestCmd),
     /// Score a reconstruction against ground truth: accuracy, completeness, precision/recall/F.
@@ -240,6 +242,7 @@ fn main() {
         },
         Command::Ingest(c) => ingest::run(c, open_gpu),
         Command::BenchIngest(c) => ingest::bench(c, open_gpu),
+        Command::Import(c) => ingest::import(c, open_gpu),
         Command::Eval {
             reconstruction,
             gt,

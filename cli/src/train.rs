@@ -284,13 +284,19 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         &a.out.join("train.json"),
         serde_json::to_string_pretty(&json)?.as_bytes(),
     )?;
-    if !a.quiet {
+    if !a.quiet && summary.views.is_empty() {
         eprintln!(
-            "trained {} steps in {:.1} s; held-out PSNR {:.2} dB, SSIM {:.3}",
+            "trained {} steps in {:.1} s; the dataset holds out no view, so there is no held-out PSNR",
+            summary.steps, summary.train_s
+        );
+    } else if !a.quiet {
+        eprintln!(
+            "trained {} steps in {:.1} s; held-out PSNR {:.2} dB, SSIM {:.3} ({} views)",
             summary.steps,
             summary.train_s,
             mean(summary.views.iter().map(|v| v.psnr)),
-            mean(summary.views.iter().map(|v| v.ssim))
+            mean(summary.views.iter().map(|v| v.ssim)),
+            summary.views.len()
         );
     }
     Ok(summary)

@@ -1237,3 +1237,74 @@ fn broken_bags_and_rig_files_fail_cleanly_without_a_dataset() {
     assert_eq!(s.keyframes, 2, "{:?}", s.dropped);
     assert_eq!(s.dropped.values().sum::<u64>(), 2);
 }
+
+#[test]
+fn dgp_scene_becomes_a_dataset_whose_depth_agrees_with_an_independent_projection() {
+    let Some(data) = shared_data("the DGP scene import") else {
+        return;
+    };
+    let Some(gpu) = common::gpu() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("dgp");
+    let s = pollster::block_on(silvr_core::ingest::dgp::import_dgp(
+        &data.join("real/dgp_scene_02"),
+        &out,
+        false,
+        silvr_core::ingest::dgp::DgpOptions {
+            downscale: 4,
+            ..Default::default()
+        },
+        &gpu,
+        &mut |_, _| {},
+    ))
+    .unwrap();
+    println!("{}", serde_json::to_string_pretty(&s).unwrap());
+    assert_eq!((s.keyframes, s.images), (3, 18));
+    // Thousands of lidar pixels in every camera (5k-12k points fall in each at full resolution).
+    for (cam, n) in &s.depth_pixels {
+        assert!(*n >= 3000, "{cam}: {n} lidar pixels over 3 keyframes");
+    }
+    // The written depth (GPU z-buffer) against the CPU reference projection of the written sweep with the
+    // written poses.
+    let t = Transforms::read(&out.join("transforms.json")).unwrap();
+    assert_eq!(
+        (t.train_filenames.len(), t.val_filenames.len()),
+        (12, 6),
+        "the middle sample is held out"
+    );
+    let lidar = silvr_core::dataset::read_tum(&out.join("poses/lidar_tum.txt")).unwrap();
+    let pts = silvr_core::pointcloud::read_ply(&out.join("lidar/deskewed/00000.ply")).unwrap();
+    let f = t
+        .frames
+        .iter()
+        .find(|f| f.keyframe == Some(0) && f.camera.as_deref() == Some("CAMERA_05"))
+        .unwrap();
+    let (model, t_world_cam) = f.camera(&out.join("transforms.json")).unwrap();
+    let t_cam_lidar = t_world_cam.inverse() * lidar.poses()[0];
+    let proj =
+        silvr_core::lidar::project::project_cpu(&silvr_core::lidar::project::ProjectionInput {
+            camera: &model,
+            t_cam_points: t_cam_lidar,
+            points: &pts.positions,
+            near: 0.5,
+        })
+        .unwrap();
+    let written = read_png16(&out.join(f.depth_file_path.as_ref().unwrap()))
+        .unwrap()
+        .2;
+    let (mut agree, mut total) = (0, 0);
+    for (pix, &r) in proj.range.iter().enumerate() {
+        if r > 0.0 {
+            total += 1;
+            let want = silvr_core::lidar::images::encode_depth(r) as i32;
+            if (written[pix] as i32 - want).abs() <= 1 {
+                agree += 1;
+            }
+        }
+    }
+    println!("CAMERA_05 keyframe 0: {agree} of {total} lidar pixels agree");
+    assert!(
+        total > 1000 && agree as f64 >= 0.99 * total as f64,
+        "{agree} of {total}"
+    );
+}

@@ -8,6 +8,8 @@
 //! - [`tf`]: static TF tree lookups.
 //! - [`rosbag`] (native only): a bag + rig file → the dataset layout (`silvr ingest`).
 //! - [`writer`] (native only): writes ROS 2 MCAP bags (the synthetic world as a bag, round-trip tests).
+//! - [`npz`]: NumPy `.npy` / `.npz` float arrays (DGP lidar sweeps).
+//! - [`dgp`] (native only): a DGP scene folder (TRI / Parallel Domain) → the dataset layout.
 //! - [`pcd`]: PCL's PCD (ascii, binary, binary_compressed) into a [`crate::pointcloud::PointCloud`].
 //! - [`colmap`]: COLMAP text models (`cameras.txt`, `images.txt`, `points3D.txt`), read and written.
 //! - [`poses`]: trajectories from TUM, KITTI odometry, Oxford Spires `slam-poses.csv` and EuRoC `data.csv`
@@ -21,9 +23,12 @@ pub mod cdr;
 pub mod colmap;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod config;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod dgp;
 pub mod kitti;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod mcap;
+pub mod npz;
 pub mod pcd;
 pub mod poses;
 pub mod ros;

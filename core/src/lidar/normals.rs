@@ -45,6 +45,55 @@ impl RangeImage {
     }
 }
 
+/// A range image for a sweep whose driver gives no ring or column (DGP `.npz`, KITTI `.bin`, PCD files):
+/// each point's elevation and azimuth binned on a square angular grid sized so that cells are about as
+/// many as points over the elevation band the sweep covers. Returns per-point (ring, column) and the grid
+/// size (rings, columns); column c is centred on azimuth 2πc/columns, like a spinning lidar's.
+pub fn angular_grid(positions: &[DVec3]) -> (Vec<u16>, Vec<u16>, usize, usize) {
+    let el_az = |p: &DVec3| {
+        let r = p.length();
+        (p.is_finite() && r > 0.0).then(|| ((p.z / r).asin(), p.y.atan2(p.x)))
+    };
+    let (mut lo, mut hi, mut n) = (f64::INFINITY, f64::NEG_INFINITY, 0usize);
+    for (el, _) in positions.iter().filter_map(el_az) {
+        lo = lo.min(el);
+        hi = hi.max(el);
+        n += 1;
+    }
+    if n < 2 || hi <= lo {
+        return (
+            vec![u16::MAX; positions.len()],
+            vec![0; positions.len()],
+            1,
+            1,
+        );
+    }
+    let step = ((hi - lo) * std::f64::consts::TAU / n as f64)
+        .sqrt()
+        .max(1e-4);
+    let columns = ((std::f64::consts::TAU / step).round() as usize).clamp(8, 16_384);
+    let rings = (((hi - lo) / step).floor() as usize + 1).min(u16::MAX as usize - 1);
+    let mut ring = Vec::with_capacity(positions.len());
+    let mut column = Vec::with_capacity(positions.len());
+    for p in positions {
+        match el_az(p) {
+            Some((el, az)) => {
+                ring.push((((el - lo) / step).floor() as usize).min(rings - 1) as u16);
+                let c = (az.rem_euclid(std::f64::consts::TAU) / std::f64::consts::TAU
+                    * columns as f64)
+                    .round() as usize
+                    % columns;
+                column.push(c as u16);
+            }
+            None => {
+                ring.push(u16::MAX);
+                column.push(0);
+            }
+        }
+    }
+    (ring, column, rings, columns)
+}
+
 /// Newell's normal of a closed polygon (not normalised).
 pub fn newell(polygon: &[DVec3]) -> DVec3 {
     let mut n = DVec3::ZERO;
@@ -245,5 +294,32 @@ mod tests {
         assert!(n[centre].is_nan(), "{}", n[centre]);
         // Rings 0.05 rad apart, columns 2π/360 apart: about 3 columns per ring.
         assert_eq!(img.balanced_column_step(&pos), 3);
+    }
+
+    #[test]
+    fn angular_grid_gives_ground_normals_without_rings() {
+        // A ground plane 1.7 m below a sensor with irregular beams (no ring field), shuffled.
+        let mut pts = Vec::new();
+        for b in 0..24 {
+            let el = (-25.0 + b as f64 * 0.9 + 0.1 * ((b * 7) % 3) as f64).to_radians();
+            for c in 0..900 {
+                let az = c as f64 / 900.0 * std::f64::consts::TAU;
+                let d = DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+                pts.push(d * (1.7 / -d.z));
+            }
+        }
+        let n = pts.len();
+        let shuffled: Vec<DVec3> = (0..n).map(|i| pts[(i * 7919) % n]).collect();
+        let (ring, column, rings, columns) = angular_grid(&shuffled);
+        assert!(rings > 10 && columns > 300, "{rings} x {columns}");
+        let (_, normals) = sweep_normals(&shuffled, rings, columns, &ring, &column);
+        let good = normals
+            .iter()
+            .filter(|m| m.is_finite() && m.z.abs() > 0.99)
+            .count();
+        assert!(good as f64 > 0.8 * n as f64, "{good} of {n} vertical");
+        // Degenerate input: no usable grid, no panic.
+        let (r, _, rr, cc) = angular_grid(&[DVec3::ZERO, DVec3::NAN]);
+        assert_eq!((r, rr, cc), (vec![u16::MAX; 2], 1, 1));
     }
 }
