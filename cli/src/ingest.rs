@@ -336,18 +336,49 @@ impl Drop for RemoveOnDrop {
 
 #[derive(clap::Args)]
 pub struct ImportCmd {
-    /// Source layout: `dgp` (a DGP scene folder: scene_*.json, calibration/, point_cloud/, rgb/).
+    /// Source layout: `dgp` (a DGP scene folder: scene_*.json, calibration/, point_cloud/, rgb/) or
+    /// `nerfstudio` (a transforms.json, e.g. from nerfstudio, instant-ngp or SiLVR's Spires tools).
     pub format: String,
-    /// The source folder.
+    /// The source folder (dgp) or transforms.json (nerfstudio).
     pub source: PathBuf,
     /// Output dataset folder (must not exist unless --overwrite).
     #[arg(long)]
     pub out: PathBuf,
     #[arg(long)]
     pub overwrite: bool,
-    /// Integer image downscale (intrinsics follow).
+    /// Integer image downscale (intrinsics follow; dgp).
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
+    /// Metres per depth PNG unit (nerfstudio; default: the file's depth_unit_scale_factor, else 0.001).
+    #[arg(long)]
+    pub depth_scale: Option<f64>,
+    /// The depth PNGs hold range along each ray instead of z-depth (nerfstudio).
+    #[arg(long)]
+    pub depth_is_range: bool,
+}
+
+#[derive(clap::Args)]
+pub struct ExportCmd {
+    /// Target layout: `colmap` (text model: cameras.txt, images.txt, empty points3D.txt).
+    pub format: String,
+    /// Dataset folder (holding transforms.json).
+    pub dataset: PathBuf,
+    /// Output folder.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// `silvr export FORMAT DATASET --out DIR`.
+pub fn export(c: ExportCmd) -> Result<()> {
+    match c.format.as_str() {
+        "colmap" => {
+            let n = silvr_core::ingest::convert::export_colmap(&c.dataset, &c.out)
+                .with_context(|| format!("exporting {} as COLMAP", c.dataset.display()))?;
+            println!("wrote {} images to {}", n, c.out.display());
+            Ok(())
+        }
+        other => anyhow::bail!("unknown export format {other:?} (supported: colmap)"),
+    }
 }
 
 /// `silvr import FORMAT SOURCE --out DIR`: other dataset layouts → ours.
@@ -375,6 +406,19 @@ pub fn import(c: ImportCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Result<()
             println!("{}", serde_json::to_string_pretty(&s)?);
             Ok(())
         }
-        other => anyhow::bail!("unknown import format {other:?} (supported: dgp)"),
+        "nerfstudio" => {
+            use silvr_core::ingest::convert;
+            let depth = c.depth_scale.map(|scale| convert::DepthEncoding {
+                scale,
+                z_depth: !c.depth_is_range,
+            });
+            let s = convert::import_nerfstudio(&c.source, &c.out, c.overwrite, depth)
+                .with_context(|| {
+                    format!("importing {} into {}", c.source.display(), c.out.display())
+                })?;
+            println!("{}", serde_json::to_string_pretty(&s)?);
+            Ok(())
+        }
+        other => anyhow::bail!("unknown import format {other:?} (supported: dgp, nerfstudio)"),
     }
 }

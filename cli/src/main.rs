@@ -60,8 +60,11 @@ enum Command {
     /// A ROS 2 bag (MCAP) + rig file → a dataset: deskewed lidar, per-camera depth, normals and sky masks,
     /// poses, transforms.json. `--info` lists a bag's topics.
     Ingest(ingest::IngestCmd),
-    /// Another dataset layout → a dataset (`dgp`: a DGP scene with lidar .npz sweeps and pinhole cameras).
+    /// Another dataset layout → a dataset: `dgp` (a DGP scene: lidar .npz sweeps, pinhole cameras) or
+    /// `nerfstudio` (a transforms.json with optional depth / normal / sky images).
     Import(ingest::ImportCmd),
+    /// A dataset → another layout (`colmap`: a text model of the cameras and posed images).
+    Export(ingest::ExportCmd),
     /// Ingest throughput: MB/s of MCAP reading + decoding, and of the whole bag → dataset (JSON).
     BenchIngest(ingest::BenchIngestCmd),
     /// Score a reconstruction against ground truth: accuracy, completeness, precision/recall/F.
@@ -243,6 +246,7 @@ fn main() {
         Command::Ingest(c) => ingest::run(c, open_gpu),
         Command::BenchIngest(c) => ingest::bench(c, open_gpu),
         Command::Import(c) => ingest::import(c, open_gpu),
+        Command::Export(c) => ingest::export(c),
         Command::Eval {
             reconstruction,
             gt,

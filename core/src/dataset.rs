@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 
 use glam::{DMat4, DQuat, DVec3};
 use serde::{Deserialize, Serialize};
+use serde_json::Value;
 
 use crate::camera::{opencv_to_opengl_c2w, CameraModel, Distortion};
 use crate::geometry::{Se3, Trajectory};
@@ -374,6 +375,71 @@ impl NsFrame {
         }
         Ok((model, Se3::from_mat4(c2w)))
     }
+}
+
+/// Frames, training file names, validation file names (the lists empty when the file has none).
+pub type FrameList = (Vec<NsFrame>, Vec<String>, Vec<String>);
+
+/// Reads a transforms.json, filling per-frame intrinsics from the top level when a frame lacks them
+/// (instant-ngp / nerfstudio single-camera files) and accepting w/h written as floats.
+pub fn read_frames(path: &Path) -> Result<FrameList, DatasetError> {
+    let text = fs::read_to_string(path).map_err(io_err(path))?;
+    let root: Value =
+        serde_json::from_str(&text).map_err(|e| fmt_err(path, format!("not JSON: {e}")))?;
+    let frames = root
+        .get("frames")
+        .and_then(Value::as_array)
+        .ok_or_else(|| fmt_err(path, "no \"frames\" array"))?;
+    let shared = [
+        "fl_x",
+        "fl_y",
+        "cx",
+        "cy",
+        "w",
+        "h",
+        "camera_model",
+        "k1",
+        "k2",
+        "k3",
+        "k4",
+        "p1",
+        "p2",
+    ];
+    let mut out = Vec::with_capacity(frames.len());
+    for (i, f) in frames.iter().enumerate() {
+        let mut f = f.clone();
+        let obj = f
+            .as_object_mut()
+            .ok_or_else(|| fmt_err(path, format!("frame {i} is not an object")))?;
+        for k in shared {
+            if !obj.contains_key(k) {
+                if let Some(v) = root.get(k) {
+                    obj.insert(k.into(), v.clone());
+                }
+            }
+        }
+        obj.entry("camera_model")
+            .or_insert_with(|| Value::from("OPENCV"));
+        for k in ["w", "h"] {
+            if let Some(v) = obj.get(k).and_then(Value::as_f64) {
+                obj.insert(k.into(), Value::from(v.round() as u64));
+            }
+        }
+        let frame: NsFrame =
+            serde_json::from_value(f).map_err(|e| fmt_err(path, format!("frame {i}: {e}")))?;
+        out.push(frame);
+    }
+    let list = |k: &str| -> Vec<String> {
+        root.get(k)
+            .and_then(Value::as_array)
+            .map(|a| {
+                a.iter()
+                    .filter_map(|v| v.as_str().map(String::from))
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    Ok((out, list("train_filenames"), list("val_filenames")))
 }
 
 /// nerfstudio `transforms.json` with per-frame intrinsics.

@@ -8,6 +8,8 @@
 //! - [`tf`]: static TF tree lookups.
 //! - [`rosbag`] (native only): a bag + rig file → the dataset layout (`silvr ingest`).
 //! - [`writer`] (native only): writes ROS 2 MCAP bags (the synthetic world as a bag, round-trip tests).
+//! - [`convert`] (native only): nerfstudio `transforms.json` → dataset (depth units, z-depth → range);
+//!   dataset → COLMAP text model.
 //! - [`npz`]: NumPy `.npy` / `.npz` float arrays (DGP lidar sweeps).
 //! - [`dgp`] (native only): a DGP scene folder (TRI / Parallel Domain) → the dataset layout.
 //! - [`pcd`]: PCL's PCD (ascii, binary, binary_compressed) into a [`crate::pointcloud::PointCloud`].
@@ -23,6 +25,8 @@ pub mod cdr;
 pub mod colmap;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod config;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod convert;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod dgp;
 pub mod kitti;

@@ -9,7 +9,6 @@ use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DVec2, DVec3};
 use rayon::prelude::*;
-use serde_json::Value;
 
 use crate::camera::CameraModel;
 use crate::dataset::{self, NsFrame};
@@ -95,71 +94,6 @@ pub struct LoadOptions {
     pub skip_lidar: bool,
 }
 
-/// Frames, training file names, validation file names (the lists empty when the file has none).
-pub type FrameList = (Vec<NsFrame>, Vec<String>, Vec<String>);
-
-/// Reads a transforms.json, filling per-frame intrinsics from the top level when a frame lacks them
-/// (instant-ngp / nerfstudio single-camera files) and accepting w/h written as floats.
-pub fn read_frames(path: &Path) -> Result<FrameList, DataError> {
-    let text = std::fs::read_to_string(path).map_err(|e| bad(path, e.to_string()))?;
-    let root: Value =
-        serde_json::from_str(&text).map_err(|e| bad(path, format!("not JSON: {e}")))?;
-    let frames = root
-        .get("frames")
-        .and_then(Value::as_array)
-        .ok_or_else(|| bad(path, "no \"frames\" array"))?;
-    let shared = [
-        "fl_x",
-        "fl_y",
-        "cx",
-        "cy",
-        "w",
-        "h",
-        "camera_model",
-        "k1",
-        "k2",
-        "k3",
-        "k4",
-        "p1",
-        "p2",
-    ];
-    let mut out = Vec::with_capacity(frames.len());
-    for (i, f) in frames.iter().enumerate() {
-        let mut f = f.clone();
-        let obj = f
-            .as_object_mut()
-            .ok_or_else(|| bad(path, format!("frame {i} is not an object")))?;
-        for k in shared {
-            if !obj.contains_key(k) {
-                if let Some(v) = root.get(k) {
-                    obj.insert(k.into(), v.clone());
-                }
-            }
-        }
-        obj.entry("camera_model")
-            .or_insert_with(|| Value::from("OPENCV"));
-        for k in ["w", "h"] {
-            if let Some(v) = obj.get(k).and_then(Value::as_f64) {
-                obj.insert(k.into(), Value::from(v.round() as u64));
-            }
-        }
-        let frame: NsFrame =
-            serde_json::from_value(f).map_err(|e| bad(path, format!("frame {i}: {e}")))?;
-        out.push(frame);
-    }
-    let list = |k: &str| -> Vec<String> {
-        root.get(k)
-            .and_then(Value::as_array)
-            .map(|a| {
-                a.iter()
-                    .filter_map(|v| v.as_str().map(String::from))
-                    .collect()
-            })
-            .unwrap_or_default()
-    };
-    Ok((out, list("train_filenames"), list("val_filenames")))
-}
-
 fn resize_rgb(px: Vec<[u8; 3]>, w: u32, h: u32, f: u32) -> Vec<[u8; 3]> {
     if f <= 1 {
         return px;
@@ -208,7 +142,7 @@ impl TrainData {
             dataset.to_path_buf()
         };
         let root = json.parent().unwrap_or(Path::new(".")).to_path_buf();
-        let (frames, train_names, val_names) = read_frames(&json)?;
+        let (frames, train_names, val_names) = dataset::read_frames(&json)?;
         if frames.is_empty() {
             return Err(bad(&json, "no frames"));
         }
