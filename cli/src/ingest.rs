@@ -336,11 +336,15 @@ impl Drop for RemoveOnDrop {
 
 #[derive(clap::Args)]
 pub struct ImportCmd {
-    /// Source layout: `dgp` (a DGP scene folder: scene_*.json, calibration/, point_cloud/, rgb/) or
-    /// `nerfstudio` (a transforms.json, e.g. from nerfstudio, instant-ngp or SiLVR's Spires tools).
+    /// Source layout: `dgp` (a DGP scene folder: scene_*.json, calibration/, point_cloud/, rgb/),
+    /// `nerfstudio` (a transforms.json, e.g. from nerfstudio, instant-ngp or SiLVR's Spires tools) or
+    /// `spires` (an Oxford Spires sequence: sensor.yaml, raw/camN/, processed/vilens-slam/).
     pub format: String,
-    /// The source folder (dgp) or transforms.json (nerfstudio).
+    /// The source folder (dgp, spires) or transforms.json (nerfstudio).
     pub source: PathBuf,
+    /// Rig file for spires (default: SOURCE/sensor.yaml).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
     /// Output dataset folder (must not exist unless --overwrite).
     #[arg(long)]
     pub out: PathBuf,
@@ -359,7 +363,8 @@ pub struct ImportCmd {
 
 #[derive(clap::Args)]
 pub struct ExportCmd {
-    /// Target layout: `colmap` (text model: cameras.txt, images.txt, empty points3D.txt).
+    /// Target layout: `colmap` (text model: cameras.txt, images.txt, empty points3D.txt) or `spires`
+    /// (sensor.yaml, raw/camN/ images, undistorted PCD clouds, slam-poses.csv).
     pub format: String,
     /// Dataset folder (holding transforms.json).
     pub dataset: PathBuf,
@@ -377,7 +382,14 @@ pub fn export(c: ExportCmd) -> Result<()> {
             println!("wrote {} images to {}", n, c.out.display());
             Ok(())
         }
-        other => anyhow::bail!("unknown export format {other:?} (supported: colmap)"),
+        "spires" => {
+            let n = silvr_core::ingest::spires::export_spires(&c.dataset, &c.out).with_context(
+                || format!("exporting {} in the Spires layout", c.dataset.display()),
+            )?;
+            println!("wrote {} images to {}", n, c.out.display());
+            Ok(())
+        }
+        other => anyhow::bail!("unknown export format {other:?} (supported: colmap, spires)"),
     }
 }
 
@@ -419,6 +431,25 @@ pub fn import(c: ImportCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Result<()
             println!("{}", serde_json::to_string_pretty(&s)?);
             Ok(())
         }
-        other => anyhow::bail!("unknown import format {other:?} (supported: dgp, nerfstudio)"),
+        "spires" => {
+            use silvr_core::ingest::spires;
+            let gpu = open_gpu()?;
+            let s = pollster::block_on(spires::import_spires(
+                &c.source,
+                c.config.as_deref(),
+                &c.out,
+                c.overwrite,
+                &gpu,
+                &mut |done, total| eprintln!("[import] keyframe {done}/{total}"),
+            ))
+            .with_context(|| {
+                format!("importing {} into {}", c.source.display(), c.out.display())
+            })?;
+            println!("{}", serde_json::to_string_pretty(&s)?);
+            Ok(())
+        }
+        other => {
+            anyhow::bail!("unknown import format {other:?} (supported: dgp, nerfstudio, spires)")
+        }
     }
 }

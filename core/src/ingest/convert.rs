@@ -204,7 +204,10 @@ pub fn import_nerfstudio(
         skipped,
     };
     if summary.images == 0 {
-        return Err(invalid(transforms, format!("no frame has its image: {:?}", summary.skipped)));
+        return Err(invalid(
+            transforms,
+            format!("no frame has its image: {:?}", summary.skipped),
+        ));
     }
     let t = Transforms {
         frames: out_frames,

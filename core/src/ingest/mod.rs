@@ -10,6 +10,7 @@
 //! - [`writer`] (native only): writes ROS 2 MCAP bags (the synthetic world as a bag, round-trip tests).
 //! - [`convert`] (native only): nerfstudio `transforms.json` → dataset (depth units, z-depth → range);
 //!   dataset → COLMAP text model.
+//! - [`spires`] (native only): the Oxford Spires folder layout ↔ dataset.
 //! - [`npz`]: NumPy `.npy` / `.npz` float arrays (DGP lidar sweeps).
 //! - [`dgp`] (native only): a DGP scene folder (TRI / Parallel Domain) → the dataset layout.
 //! - [`pcd`]: PCL's PCD (ascii, binary, binary_compressed) into a [`crate::pointcloud::PointCloud`].
@@ -38,6 +39,8 @@ pub mod poses;
 pub mod ros;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod rosbag;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod spires;
 pub mod tf;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod writer;

@@ -55,8 +55,8 @@ pub enum PcdError {
 /// A PCD file's cloud plus the header facts the cloud type has no place for.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PcdCloud {
-    /// Positions (NaN points kept, as in organised clouds), `colors` from an `rgb`/`rgba` field, and an
-    /// `intensity` scalar when present.
+    /// Positions (NaN points kept, as in organised clouds), `colors` from an `rgb`/`rgba` field, and every
+    /// other single-valued field (`intensity`, `ring`, `t`, ...) as a named scalar.
     pub cloud: PointCloud,
     /// VIEWPOINT as `T_world_sensor` (identity when absent).
     pub viewpoint: Se3,
@@ -317,7 +317,6 @@ pub fn read_pcd_bytes(bytes: &[u8], name: &str) -> Result<PcdCloud, PcdError> {
     let (Some(ix), Some(iy), Some(iz)) = (find("x"), find("y"), find("z")) else {
         return Err(PcdError::MissingXyz { file });
     };
-    let ii = find("intensity");
     let irgb = find("rgb")
         .or_else(|| find("rgba"))
         .filter(|&i| fields[i].size == 4);
@@ -332,7 +331,13 @@ pub fn read_pcd_bytes(bytes: &[u8], name: &str) -> Result<PcdCloud, PcdError> {
     };
 
     let mut positions = Vec::new();
-    let mut intensity = ii.map(|_| Vec::new());
+    // Every other single-valued field (intensity, ring, time, ...) becomes a named scalar.
+    let extra: Vec<usize> = (0..fields.len())
+        .filter(|&i| {
+            ![Some(ix), Some(iy), Some(iz), irgb].contains(&Some(i)) && fields[i].count == 1
+        })
+        .collect();
+    let mut scalars: Vec<Vec<f32>> = extra.iter().map(|_| Vec::new()).collect();
     let mut colors = irgb.map(|_| Vec::new());
     match data_kind {
         DataKind::Binary => {
@@ -346,7 +351,7 @@ pub fn read_pcd_bytes(bytes: &[u8], name: &str) -> Result<PcdCloud, PcdError> {
                 let p = &data[k * point_bytes..(k + 1) * point_bytes];
                 let get = |i: usize| fields[i].read(&p[fields[i].offset..]);
                 positions.push(DVec3::new(get(ix), get(iy), get(iz)));
-                if let (Some(i), Some(v)) = (ii, intensity.as_mut()) {
+                for (&i, v) in extra.iter().zip(scalars.iter_mut()) {
                     v.push(get(i) as f32);
                 }
                 if let (Some(i), Some(v)) = (irgb, colors.as_mut()) {
@@ -396,7 +401,7 @@ pub fn read_pcd_bytes(bytes: &[u8], name: &str) -> Result<PcdCloud, PcdError> {
             positions.reserve_exact(n);
             for k in 0..n {
                 positions.push(DVec3::new(get(ix, k), get(iy, k), get(iz, k)));
-                if let (Some(i), Some(v)) = (ii, intensity.as_mut()) {
+                for (&i, v) in extra.iter().zip(scalars.iter_mut()) {
                     v.push(get(i, k) as f32);
                 }
                 if let (Some(i), Some(v)) = (irgb, colors.as_mut()) {
@@ -446,7 +451,7 @@ pub fn read_pcd_bytes(bytes: &[u8], name: &str) -> Result<PcdCloud, PcdError> {
                     })
                 };
                 positions.push(DVec3::new(num(ix)?, num(iy)?, num(iz)?));
-                if let (Some(i), Some(v)) = (ii, intensity.as_mut()) {
+                for (&i, v) in extra.iter().zip(scalars.iter_mut()) {
                     v.push(num(i)? as f32);
                 }
                 if let (Some(i), Some(v)) = (irgb, colors.as_mut()) {
@@ -469,8 +474,8 @@ pub fn read_pcd_bytes(bytes: &[u8], name: &str) -> Result<PcdCloud, PcdError> {
     }
     let mut cloud = PointCloud::from_positions(positions);
     cloud.colors = colors;
-    if let Some(v) = intensity {
-        cloud.scalars.push(("intensity".into(), v));
+    for (&i, v) in extra.iter().zip(scalars) {
+        cloud.scalars.push((fields[i].name.clone(), v));
     }
     Ok(PcdCloud {
         cloud,
@@ -496,6 +501,45 @@ const LZF_MAX_RATIO: u64 = 88;
 
 /// Decompresses an LZF stream (liblzf format, as PCL writes it) that must produce exactly `out_len`
 /// bytes. Any overrun, back reference before the start, or length mismatch is an error.
+/// A binary PCD (v0.7) of `cloud`: x y z as F4, then every scalar as F4, VIEWPOINT = `viewpoint`
+/// (`T_world_sensor`). What PCL and Oxford Spires' tools read.
+pub fn write_pcd_bytes(cloud: &PointCloud, viewpoint: &Se3) -> Vec<u8> {
+    let names: Vec<&str> = ["x", "y", "z"]
+        .into_iter()
+        .chain(cloud.scalars.iter().map(|(n, _)| n.as_str()))
+        .collect();
+    let k = names.len();
+    let n = cloud.positions.len();
+    let q = viewpoint.rot;
+    let t = viewpoint.trans;
+    let mut out = format!(
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {}\nSIZE {}\nTYPE {}\nCOUNT {}\n\
+         WIDTH {n}\nHEIGHT 1\nVIEWPOINT {} {} {} {} {} {} {}\nPOINTS {n}\nDATA binary\n",
+        names.join(" "),
+        vec!["4"; k].join(" "),
+        vec!["F"; k].join(" "),
+        vec!["1"; k].join(" "),
+        t.x,
+        t.y,
+        t.z,
+        q.w,
+        q.x,
+        q.y,
+        q.z
+    )
+    .into_bytes();
+    out.reserve(n * k * 4);
+    for (i, p) in cloud.positions.iter().enumerate() {
+        for v in [p.x, p.y, p.z] {
+            out.extend_from_slice(&(v as f32).to_le_bytes());
+        }
+        for (_, s) in &cloud.scalars {
+            out.extend_from_slice(&s.get(i).copied().unwrap_or(f32::NAN).to_le_bytes());
+        }
+    }
+    out
+}
+
 pub fn lzf_decompress(input: &[u8], out_len: usize) -> Result<Vec<u8>, String> {
     let mut out: Vec<u8> = Vec::with_capacity(out_len);
     let mut ip = 0usize;
@@ -647,5 +691,21 @@ mod tests {
         assert!(lzf_decompress(&c, data.len() + 1).is_err());
         // A back reference before the start of the output.
         assert!(lzf_decompress(&[0, b'x', (1 << 5), 5], 4).is_err());
+    }
+
+    #[test]
+    fn written_pcd_reads_back_with_scalars_and_viewpoint() {
+        let mut pc = PointCloud::from_positions(vec![
+            DVec3::new(1.0, -2.5, 0.25),
+            DVec3::new(40.0, 3.0, -1.0),
+        ]);
+        pc.set_scalar("intensity", vec![3.0, 250.0]);
+        pc.set_scalar("ring", vec![0.0, 15.0]);
+        let vp = Se3::new(DQuat::from_rotation_z(0.3), DVec3::new(10.0, -4.0, 1.5));
+        let back = read_pcd_bytes(&write_pcd_bytes(&pc, &vp), "w.pcd").unwrap();
+        assert_eq!(back.cloud.positions, pc.positions);
+        assert_eq!(back.cloud.scalars, pc.scalars);
+        assert!(back.viewpoint.distance_to(&vp) < 1e-6 && back.viewpoint.angle_to(&vp) < 1e-6);
+        assert_eq!(back.fields, ["x", "y", "z", "intensity", "ring"]);
     }
 }

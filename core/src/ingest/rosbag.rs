@@ -28,7 +28,7 @@ use crate::dataset::{
 };
 use crate::geometry::{Se3, Trajectory};
 use crate::gpu::{Gpu, GpuError};
-use crate::lidar::{deskew, images, products};
+use crate::lidar::{deskew, images, normals, products};
 use crate::pointcloud::{write_ply_bytes, PointCloud};
 use crate::rig::{Rig, RigCamera};
 
@@ -128,7 +128,7 @@ struct Index {
     sweeps: Vec<SweepRef>,
     lidar_frame: Option<String>,
     max_ring: Option<u16>,
-    azimuth_steps: Vec<f64>,
+    column_estimates: Vec<usize>,
     dropped: BTreeMap<String, u64>,
 }
 
@@ -138,34 +138,6 @@ fn secs(t: ros::Time) -> f64 {
 
 fn drop_count(d: &mut BTreeMap<String, u64>, why: impl Into<String>) {
     *d.entry(why.into()).or_insert(0) += 1;
-}
-
-/// Median azimuth step between consecutive returns of one ring, over a sweep's rings (radians).
-fn azimuth_step(scan: &LidarScan) -> Option<f64> {
-    let rings = scan.rings.as_ref()?;
-    let mut per_ring: BTreeMap<u16, Vec<f64>> = BTreeMap::new();
-    for (p, &r) in scan.positions.iter().zip(rings) {
-        per_ring.entry(r).or_default().push(p.y.atan2(p.x));
-    }
-    let mut steps = Vec::new();
-    for az in per_ring.values_mut() {
-        az.sort_by(f64::total_cmp);
-        steps.extend(az.windows(2).map(|w| w[1] - w[0]).filter(|&d| d > 1e-5));
-    }
-    if steps.is_empty() {
-        return None;
-    }
-    let mid = steps.len() / 2;
-    steps.select_nth_unstable_by(mid, f64::total_cmp);
-    Some(steps[mid])
-}
-
-/// Column of a point for a lidar with `columns` azimuth steps per revolution: column c looks along azimuth
-/// 2πc/columns, counter-clockwise from the sensor's +x (the convention of the range image and sky mask).
-fn column_of(p: DVec3, columns: usize) -> u16 {
-    let az = p.y.atan2(p.x).rem_euclid(std::f64::consts::TAU);
-    let c = (az / std::f64::consts::TAU * columns as f64).round() as usize % columns;
-    c as u16
 }
 
 /// Reads `bag` with `cfg` (the rig file, its folder in `cfg_dir` for relative paths) and writes the
@@ -281,9 +253,13 @@ pub async fn ingest_bag(
                         {
                             ix.max_ring = Some(ix.max_ring.map_or(r, |m| m.max(r)));
                         }
-                        if ix.azimuth_steps.len() < 16 {
-                            if let Some(s) = azimuth_step(&scan) {
-                                ix.azimuth_steps.push(s);
+                        if ix.column_estimates.len() < 16 {
+                            if let Some(c) = scan
+                                .rings
+                                .as_ref()
+                                .and_then(|r| normals::columns_from_azimuths(&scan.positions, r))
+                            {
+                                ix.column_estimates.push(c);
                             }
                         }
                         ix.sweeps.push(SweepRef {
@@ -500,17 +476,14 @@ pub async fn ingest_bag(
     let columns = match ing.lidar_columns {
         Some(c) => c as usize,
         None => {
-            let mut s = ix.azimuth_steps.clone();
+            let mut s = ix.column_estimates.clone();
             if s.is_empty() {
                 return Err(unusable(
                     "cannot estimate the lidar's azimuth step (set ingest.lidar_columns)".into(),
                 ));
             }
             let mid = s.len() / 2;
-            s.select_nth_unstable_by(mid, f64::total_cmp);
-            (std::f64::consts::TAU / s[mid])
-                .round()
-                .clamp(16.0, 16384.0) as usize
+            *s.select_nth_unstable(mid).1
         }
     };
 
@@ -917,7 +890,7 @@ async fn write_keyframe(
     let column: Vec<u16> = scan
         .positions
         .iter()
-        .map(|&p| column_of(p, columns))
+        .map(|&p| normals::column_of(p, columns))
         .collect();
     let desk = deskew::deskew(&scan.positions, &abs_times, trajectory, kf.time).map_err(|e| {
         IngestError::Unusable {

@@ -45,6 +45,39 @@ impl RangeImage {
     }
 }
 
+/// Azimuth columns per revolution of a spinning lidar, from its points and rings: 2π over the median
+/// azimuth step between consecutive returns of a ring. `None` when no ring has two distinct returns.
+pub fn columns_from_azimuths(positions: &[DVec3], ring: &[u16]) -> Option<usize> {
+    let mut per_ring: std::collections::BTreeMap<u16, Vec<f64>> = Default::default();
+    for (p, &r) in positions.iter().zip(ring) {
+        if p.is_finite() && r != u16::MAX {
+            per_ring.entry(r).or_default().push(p.y.atan2(p.x));
+        }
+    }
+    let mut steps = Vec::new();
+    for az in per_ring.values_mut() {
+        az.sort_by(f64::total_cmp);
+        steps.extend(az.windows(2).map(|w| w[1] - w[0]).filter(|&d| d > 1e-5));
+    }
+    if steps.is_empty() {
+        return None;
+    }
+    let mid = steps.len() / 2;
+    steps.select_nth_unstable_by(mid, f64::total_cmp);
+    Some(
+        (std::f64::consts::TAU / steps[mid])
+            .round()
+            .clamp(16.0, 16384.0) as usize,
+    )
+}
+
+/// Column of a point for a lidar with `columns` azimuth steps per revolution: column c looks along azimuth
+/// 2πc/columns, counter-clockwise from the sensor's +x (the convention of [`RangeImage`] and the sky mask).
+pub fn column_of(p: DVec3, columns: usize) -> u16 {
+    let az = p.y.atan2(p.x).rem_euclid(std::f64::consts::TAU);
+    ((az / std::f64::consts::TAU * columns as f64).round() as usize % columns.max(1)) as u16
+}
+
 /// A range image for a sweep whose driver gives no ring or column (DGP `.npz`, KITTI `.bin`, PCD files):
 /// each point's elevation and azimuth binned on a square angular grid sized so that cells are about as
 /// many as points over the elevation band the sweep covers. Returns per-point (ring, column) and the grid
