@@ -338,13 +338,17 @@ impl Drop for RemoveOnDrop {
 pub struct ImportCmd {
     /// Source layout: `dgp` (a DGP scene folder: scene_*.json, calibration/, point_cloud/, rgb/),
     /// `nerfstudio` (a transforms.json, e.g. from nerfstudio, instant-ngp or SiLVR's Spires tools) or
-    /// `spires` (an Oxford Spires sequence: sensor.yaml, raw/camN/, processed/vilens-slam/).
+    /// `spires` (an Oxford Spires sequence: sensor.yaml, raw/camN/, processed/vilens-slam/) or `colmap` (a
+    /// text model folder; photos from --images).
     pub format: String,
     /// The source folder (dgp, spires) or transforms.json (nerfstudio).
     pub source: PathBuf,
     /// Rig file for spires (default: SOURCE/sensor.yaml).
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// colmap: the folder the model's image names are relative to (default: SOURCE/../images).
+    #[arg(long)]
+    pub images: Option<PathBuf>,
     /// Output dataset folder (must not exist unless --overwrite).
     #[arg(long)]
     pub out: PathBuf,
@@ -428,6 +432,19 @@ pub fn import(c: ImportCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Result<()
                 .with_context(|| {
                     format!("importing {} into {}", c.source.display(), c.out.display())
                 })?;
+            println!("{}", serde_json::to_string_pretty(&s)?);
+            Ok(())
+        }
+        "colmap" => {
+            let images = c
+                .images
+                .clone()
+                .unwrap_or_else(|| c.source.join("../images"));
+            let s =
+                silvr_core::ingest::convert::import_colmap(&c.source, &images, &c.out, c.overwrite)
+                    .with_context(|| {
+                        format!("importing {} into {}", c.source.display(), c.out.display())
+                    })?;
             println!("{}", serde_json::to_string_pretty(&s)?);
             Ok(())
         }

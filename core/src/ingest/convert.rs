@@ -3,7 +3,7 @@
 //!   intrinsics, `depth_file_path` in any unit and as z-depth or range, `normal_file_path`,
 //!   `sky_mask_path`) → our dataset, with depth converted to our range × 256 encoding;
 //! - [`export_colmap`]: our dataset → a COLMAP text model (cameras, posed images; no 3-D points), so COLMAP,
-//!   nerfstudio's `colmap` parser or evo can read the poses.
+//!   nerfstudio's `colmap` parser or evo can read the poses; [`import_colmap`] the other way (camera-only).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -271,6 +271,117 @@ fn axis_cosines(m: &CameraModel) -> Vec<f64> {
     v
 }
 
+/// Imports a COLMAP text model (`model` holding cameras.txt, images.txt[, points3D.txt]) with its photos
+/// (`images`, the folder COLMAP's image names are relative to) as a camera-only dataset: the poses in
+/// COLMAP's frame and scale, every tenth image held out. With `points3D.txt`, its points are written to
+/// `colmap_points.ply` (colour and reprojection error). Images missing on disk are skipped and listed.
+pub fn import_colmap(
+    model: &Path,
+    images: &Path,
+    out: &Path,
+    overwrite: bool,
+) -> Result<ImportSummary, ConvertError> {
+    let m = colmap::read_model(model)?;
+    if m.images.is_empty() {
+        return Err(invalid(&model.join("images.txt"), "no images"));
+    }
+    let w = DatasetWriter::create(out, overwrite)?;
+    let mut frames = Vec::new();
+    let (mut train, mut val, mut skipped) = (Vec::new(), Vec::new(), Vec::new());
+    let mut sorted: Vec<&ColmapImage> = m.images.iter().collect();
+    sorted.sort_by(|a, b| a.name.cmp(&b.name));
+    for (i, img) in sorted.into_iter().enumerate() {
+        let cam = m
+            .cameras
+            .get(&img.camera_id)
+            .expect("read_model checks camera ids");
+        let src = images.join(&img.name);
+        if !src.exists() {
+            skipped.push(format!("{}: image file missing", img.name));
+            continue;
+        }
+        let rgb = image::open(&src)
+            .map_err(|e| invalid(&src, e.to_string()))?
+            .to_rgb8();
+        if (rgb.width(), rgb.height()) != (cam.width, cam.height) {
+            return Err(invalid(
+                &src,
+                format!(
+                    "image is {}x{}, camera {} says {}x{}",
+                    rgb.width(),
+                    rgb.height(),
+                    img.camera_id,
+                    cam.width,
+                    cam.height
+                ),
+            ));
+        }
+        let px: Vec<[u8; 3]> = rgb.pixels().map(|p| p.0).collect();
+        let cam_name = format!("camera{}", img.camera_id);
+        let rel = format!("images/{cam_name}/{i:05}.png");
+        w.write(&rel, &png_rgb(cam.width, cam.height, &px))?;
+        let mut f = NsFrame::new(rel.clone(), cam, &img.t_world_cam());
+        f.camera = Some(cam_name);
+        f.keyframe = Some(i);
+        if i % 10 == 5 {
+            val.push(rel);
+        } else {
+            train.push(rel);
+        }
+        frames.push(f);
+    }
+    if frames.is_empty() {
+        return Err(invalid(
+            images,
+            format!("none of the model's images is here: {skipped:?}"),
+        ));
+    }
+    if !m.points.is_empty() {
+        let ply = crate::pointcloud::write_ply_bytes(&m.point_cloud())
+            .map_err(|e| invalid(&model.join("points3D.txt"), e.to_string()))?;
+        w.write("colmap_points.ply", &ply)?;
+    }
+    let summary = ImportSummary {
+        path: out.to_path_buf(),
+        images: frames.len(),
+        with_depth: 0,
+        with_normals: 0,
+        with_sky: 0,
+        depth: DepthEncoding {
+            scale: 1.0 / images::DEPTH_SCALE as f64,
+            z_depth: false,
+        },
+        skipped,
+    };
+    let t = Transforms {
+        frames,
+        depth_unit_scale_factor: Some(1.0 / images::DEPTH_SCALE as f64),
+        train_filenames: train,
+        val_filenames: val,
+    };
+    w.write(
+        "transforms.json",
+        serde_json::to_string_pretty(&t)
+            .expect("plain data")
+            .as_bytes(),
+    )?;
+    let manifest = serde_json::json!({
+        "layout_version": dataset::LAYOUT_VERSION,
+        "generator": "silvr-import-colmap 1",
+        "source": model.display().to_string(),
+        "images": images.display().to_string(),
+        "summary": &summary,
+    });
+    w.write(
+        "manifest.json",
+        serde_json::to_string_pretty(&manifest)
+            .expect("plain data")
+            .as_bytes(),
+    )?;
+    let path = w.commit()?;
+    Ok(ImportSummary { path, ..summary })
+}
+
 /// Writes a COLMAP text model of `dataset` (its `transforms.json`) into `out`: one camera per distinct
 /// intrinsics, one image per frame named by its path in the dataset, no 3-D points.
 pub fn export_colmap(dataset: &Path, out: &Path) -> Result<usize, ConvertError> {
@@ -439,6 +550,21 @@ mod tests {
         assert_eq!(back.cameras[&1], model);
         let p = back.images[2].t_world_cam();
         assert!(p.distance_to(&want) < 1e-9 && p.angle_to(&want) < 1e-9);
+        // ... and that model with the dataset's images is a dataset again.
+        let again = import_colmap(
+            &tmp.path().join("colmap"),
+            &out,
+            &tmp.path().join("again"),
+            false,
+        )
+        .unwrap();
+        assert_eq!(again.images, 3);
+        let t2 = Transforms::read(&tmp.path().join("again/transforms.json")).unwrap();
+        let (m2, p2) = t2.frames[2]
+            .camera(&tmp.path().join("again/transforms.json"))
+            .unwrap();
+        assert_eq!(m2, model);
+        assert!(p2.distance_to(&want) < 1e-9 && p2.angle_to(&want) < 1e-9);
 
         // Errors name the file; nothing is left behind.
         std::fs::write(
