@@ -1387,3 +1387,137 @@ fn synthetic_dataset_round_trips_through_the_spires_layout() {
     assert!(worst_normal <= 0.05, "normals differ on {worst_normal:.2e}");
     assert!(worst_sky <= 0.01, "sky differs on {worst_sky:.2e}");
 }
+
+/// Copies a bag message by message through `edit` (topic, type, payload) → `None` drops the message,
+/// `Some(bytes)` writes those bytes; used to break one thing at a time.
+fn edit_bag(src: &Path, dst: &Path, edit: impl Fn(&str, &str, &[u8]) -> Option<Vec<u8>>) {
+    let mut w = silvr_core::ingest::writer::BagWriter::create(dst).unwrap();
+    for m in BagReader::open(src).unwrap() {
+        let m = m.unwrap();
+        if let Some(bytes) = edit(m.topic(), m.schema_name(), m.data()) {
+            let t = silvr_core::ingest::writer::ros_time(m.log_time() as f64 * 1e-9);
+            w.write(m.topic(), m.schema_name(), t, &bytes).unwrap();
+        }
+    }
+    w.finish().unwrap();
+}
+
+#[test]
+fn ingest_error_paths_name_the_problem() {
+    let Some(gpu) = common::gpu() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let preset = synth_with_bag(dir, &gpu);
+    let bag = dir.join("scene.mcap");
+    let cfg = rig_config(&preset);
+    let run = |bag: &Path, cfg: &RigConfig, out: &str| {
+        let r = pollster::block_on(ingest_bag(
+            bag,
+            cfg,
+            dir,
+            &dir.join(out),
+            false,
+            &gpu,
+            &mut |_| {},
+        ));
+        assert!(
+            r.is_ok() || !dir.join(out).exists(),
+            "{out}: a failed ingest left a dataset"
+        );
+        r
+    };
+    // No trajectory at all.
+    let b = dir.join("no_odom.mcap");
+    edit_bag(&bag, &b, |t, _, d| (t != "/odometry").then(|| d.to_vec()));
+    let e = run(&b, &cfg, "e1").unwrap_err().to_string();
+    assert!(
+        e.contains("no_odom.mcap") && e.contains("/odometry") && e.contains("0 usable poses"),
+        "{e}"
+    );
+    // Clouds without a ring field: the range image cannot be built.
+    let strip_ring = |pc: &PointCloud2| {
+        let mut fields = pc.fields.clone();
+        for f in &mut fields {
+            if f.name == "ring" {
+                f.name = "beam_id".into();
+            }
+        }
+        PointCloud2 {
+            fields,
+            ..pc.clone()
+        }
+        .encode()
+    };
+    let b = dir.join("no_ring.mcap");
+    edit_bag(&bag, &b, |t, _, d| {
+        Some(if t == "/hesai/pandar" {
+            strip_ring(&PointCloud2::decode(d).unwrap())
+        } else {
+            d.to_vec()
+        })
+    });
+    let e = run(&b, &cfg, "e2").unwrap_err().to_string();
+    assert!(e.contains("no 'ring' field"), "{e}");
+    // Clouds without per-point time: every sweep is dropped and counted, then no keyframe can be made.
+    let b = dir.join("no_time.mcap");
+    edit_bag(&bag, &b, |t, _, d| {
+        Some(if t == "/hesai/pandar" {
+            let pc = PointCloud2::decode(d).unwrap();
+            let fields = pc
+                .fields
+                .iter()
+                .filter(|f| f.name != "timestamp")
+                .cloned()
+                .collect();
+            PointCloud2 {
+                fields,
+                ..pc.clone()
+            }
+            .encode()
+        } else {
+            d.to_vec()
+        })
+    });
+    let e = run(&b, &cfg, "e3").unwrap_err().to_string();
+    assert!(e.contains("no usable sweeps"), "{e}");
+    // A corrupt message on a topic we need is dropped and counted; the rest still ingests.
+    let b = dir.join("one_bad.mcap");
+    let first = std::sync::atomic::AtomicBool::new(true);
+    edit_bag(&bag, &b, |t, _, d| {
+        Some(
+            if t == "/hesai/pandar" && first.swap(false, std::sync::atomic::Ordering::SeqCst) {
+                d[..d.len() / 2].to_vec()
+            } else {
+                d.to_vec()
+            },
+        )
+    });
+    let s = run(&b, &cfg, "e4").unwrap();
+    assert_eq!(s.keyframes, 3, "{:?}", s.dropped);
+    assert!(
+        s.dropped.keys().any(|k| k.contains("undecodable")),
+        "{:?}",
+        s.dropped
+    );
+    assert!(
+        s.dropped.keys().any(|k| k.contains("no sweep covers")),
+        "{:?}",
+        s.dropped
+    );
+    // Images whose size disagrees with the calibration.
+    let mut small = cfg.clone();
+    small.sensor.cameras[1].image_width = Some(300);
+    small.sensor.cameras[1].intrinsics = Some(vec![150.0, 150.0, 150.0, 135.0]);
+    let e = run(&bag, &small, "e5").unwrap_err().to_string();
+    assert!(
+        e.contains("cam_left") && e.contains("360x270") && e.contains("300x270"),
+        "{e}"
+    );
+    // Only one camera's images in the window: nothing synchronised.
+    let b = dir.join("one_cam.mcap");
+    edit_bag(&bag, &b, |t, _, d| {
+        (!t.contains("cam1/debayered/image")).then(|| d.to_vec())
+    });
+    let e = run(&b, &cfg, "e6").unwrap_err().to_string();
+    assert!(e.contains("cam_left") && e.contains("no images"), "{e}");
+}

@@ -145,7 +145,8 @@ pub struct IngestSection {
     /// its child frame (Odometry's `child_frame_id`, else `trajectory_frame`) is looked up in the TF tree.
     #[serde(default = "default_trajectory_topic")]
     pub trajectory_topic: Option<String>,
-    /// A TUM file instead of a topic (relative to the rig file), e.g. a SLAM system's output.
+    /// A trajectory file instead of a topic (relative to the rig file), e.g. a SLAM system's output: TUM,
+    /// KITTI (+ times.txt), Oxford Spires slam-poses.csv or EuRoC data.csv, detected from the file.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub trajectory_file: Option<String>,
     /// Frame the trajectory poses (`base_link` unless Odometry says otherwise).

@@ -415,7 +415,11 @@ pub async fn ingest_bag(
     // ---- trajectory: T_world_lidar ----------------------------------------------------------------
     let (samples, traj_frame, traj_source) = if let Some(f) = &ing.trajectory_file {
         let path = cfg_dir.join(f);
-        let t = dataset::read_tum(&path)?;
+        // TUM, KITTI (+ times.txt), Spires slam-poses.csv or EuRoC, detected from the file.
+        let t = super::poses::read_trajectory(&path).map_err(|e| IngestError::Unusable {
+            file: path.display().to_string(),
+            reason: e.to_string(),
+        })?;
         let s: Vec<(f64, Se3)> = t
             .stamps()
             .iter()
