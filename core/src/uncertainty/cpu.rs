@@ -473,4 +473,61 @@ mod tests {
             );
         }
     }
+
+    /// More lidar rays through a region → more depth information there: repeating one lidar ray adds its
+    /// squared Jacobian once per copy to exactly the vertices it touches (lower posterior variance there),
+    /// leaves every other vertex and the colour Fisher of depth-only rays alone.
+    #[test]
+    fn more_lidar_rays_lower_depth_variance_only_where_they_pass() {
+        use super::super::{COLOUR_RAY, DEPTH_RAY};
+        let (cfg, params, rays) = setup(5, 6);
+        let grid = PerturbationGrid { cells: 8 };
+        let nv = grid.vertices();
+        let fisher = |rays: &[TrainRay], flags: &[u32]| {
+            let t = final_edges(&cfg, &params, rays).unwrap();
+            let sj = sample_jacobians_cpu(&cfg, &params, rays, &t).unwrap();
+            let (mut hc, mut hd) = (vec![0.0; nv], vec![0.0; nv]);
+            accumulate_fisher_cpu(grid, &sj, flags, &mut hc, &mut hd);
+            (hc, hd)
+        };
+        let flags = vec![COLOUR_RAY | DEPTH_RAY; rays.len()];
+        let (hc1, hd1) = fisher(&rays, &flags);
+        // Three more lidar returns along ray 0 (depth only).
+        let mut more = rays.clone();
+        more.extend([rays[0]; 3]);
+        let mut more_flags = flags.clone();
+        more_flags.extend([DEPTH_RAY; 3]);
+        let (hc2, hd2) = fisher(&more, &more_flags);
+        let t0 = final_edges(&cfg, &params, &rays[..1]).unwrap();
+        let sj0 = sample_jacobians_cpu(&cfg, &params, &rays[..1], &t0).unwrap();
+        let touched: BTreeMap<usize, f64> = ray_vertex_jacobians(grid, &sj0, 0)
+            .into_iter()
+            .map(|(v, j)| (v, j[3].iter().map(|x| x * x).sum::<f64>()))
+            .collect();
+        let mut lowered = 0;
+        for v in 0..nv {
+            assert_eq!(
+                hc1[v], hc2[v],
+                "vertex {v}: depth-only rays changed the colour Fisher"
+            );
+            let own = touched.get(&v).copied().unwrap_or(0.0);
+            let want = hd1[v] + 3.0 * own;
+            assert!(
+                (hd2[v] - want).abs() <= 1e-9 * want.abs().max(1e-12),
+                "vertex {v}: {} vs {want}",
+                hd2[v]
+            );
+            if own > 1e-12 {
+                lowered += 1;
+                // Posterior variance 1/(H/N + λ) falls wherever the extra rays pass.
+                assert!(1.0 / (hd2[v] + 1e-4) < 1.0 / (hd1[v] + 1e-4));
+            } else {
+                assert_eq!(hd1[v], hd2[v], "vertex {v} untouched by ray 0 changed");
+            }
+        }
+        assert!(
+            lowered >= 8,
+            "ray 0 touched only {lowered} vertices with depth information"
+        );
+    }
 }
