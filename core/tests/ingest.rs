@@ -1391,12 +1391,23 @@ fn synthetic_dataset_round_trips_through_the_spires_layout() {
 /// Copies a bag message by message through `edit` (topic, type, payload) → `None` drops the message,
 /// `Some(bytes)` writes those bytes; used to break one thing at a time.
 fn edit_bag(src: &Path, dst: &Path, edit: impl Fn(&str, &str, &[u8]) -> Option<Vec<u8>>) {
+    edit_bag_typed(src, dst, |t, ty, d| {
+        edit(t, ty, d).map(|b| (ty.to_string(), b))
+    });
+}
+
+/// [`edit_bag`] that may also change a message's type (the channel takes the first type written).
+fn edit_bag_typed(
+    src: &Path,
+    dst: &Path,
+    edit: impl Fn(&str, &str, &[u8]) -> Option<(String, Vec<u8>)>,
+) {
     let mut w = silvr_core::ingest::writer::BagWriter::create(dst).unwrap();
     for m in BagReader::open(src).unwrap() {
         let m = m.unwrap();
-        if let Some(bytes) = edit(m.topic(), m.schema_name(), m.data()) {
+        if let Some((ty, bytes)) = edit(m.topic(), m.schema_name(), m.data()) {
             let t = silvr_core::ingest::writer::ros_time(m.log_time() as f64 * 1e-9);
-            w.write(m.topic(), m.schema_name(), t, &bytes).unwrap();
+            w.write(m.topic(), &ty, t, &bytes).unwrap();
         }
     }
     w.finish().unwrap();
@@ -1513,6 +1524,32 @@ fn ingest_error_paths_name_the_problem() {
         e.contains("cam_left") && e.contains("360x270") && e.contains("300x270"),
         "{e}"
     );
+    // The trajectory from /tf (odom → base_link) instead of /odometry gives the same dataset poses.
+    let b = dir.join("tf_traj.mcap");
+    edit_bag_typed(&bag, &b, |t, ty, d| {
+        if t != "/odometry" {
+            return Some((ty.to_string(), d.to_vec()));
+        }
+        let o = Odometry::decode(d).unwrap();
+        let tf = TfMessage {
+            transforms: vec![TransformStamped {
+                header: o.header.clone(),
+                child_frame_id: o.child_frame_id.clone(),
+                transform: o.pose,
+            }],
+        };
+        Some((TfMessage::MSG.to_string(), tf.encode()))
+    });
+    // The TF messages keep the topic name "/odometry", now typed TFMessage.
+    let mut via_tf = cfg.clone();
+    via_tf.ingest.trajectory_topic = Some("/odometry".into());
+    let s = run(&b, &via_tf, "e7").unwrap();
+    assert_eq!(s.keyframes, 4);
+    let pa = silvr_core::dataset::read_tum(&dir.join("synth/poses/lidar_tum.txt")).unwrap();
+    let pb = silvr_core::dataset::read_tum(&dir.join("e7/poses/lidar_tum.txt")).unwrap();
+    for (qa, qb) in pa.poses().iter().zip(pb.poses()) {
+        assert!(qa.distance_to(qb) < 1e-6, "{qa:?} vs {qb:?}");
+    }
     // Only one camera's images in the window: nothing synchronised.
     let b = dir.join("one_cam.mcap");
     edit_bag(&bag, &b, |t, _, d| {

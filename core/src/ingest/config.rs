@@ -141,8 +141,10 @@ pub struct IngestSection {
     /// sensor_msgs/PointCloud2 with per-point time.
     #[serde(default = "default_lidar_topic")]
     pub lidar_topic: String,
-    /// The trajectory in the bag (nav_msgs/Odometry, nav_msgs/Path, PoseStamped, PoseWithCovarianceStamped);
-    /// its child frame (Odometry's `child_frame_id`, else `trajectory_frame`) is looked up in the TF tree.
+    /// The trajectory in the bag (nav_msgs/Odometry, nav_msgs/Path, PoseStamped, PoseWithCovarianceStamped,
+    /// or a TF topic such as `/tf`, whose edge with child `trajectory_frame` (default: the base frame) is
+    /// used); its child frame (Odometry's `child_frame_id`, else `trajectory_frame`) is looked up in the TF
+    /// tree.
     #[serde(default = "default_trajectory_topic")]
     pub trajectory_topic: Option<String>,
     /// A trajectory file instead of a topic (relative to the rig file), e.g. a SLAM system's output: TUM,

@@ -227,6 +227,19 @@ pub async fn ingest_bag(
                 }
                 used = true;
             }
+            RosMessage::Tf(tf)
+                if ing.trajectory_topic.as_deref() == Some(topic.as_str())
+                    && ing.trajectory_file.is_none() =>
+            {
+                // A TF topic as the trajectory: the one edge whose child is the trajectory frame
+                // (`odom` → `base_link` from an odometry node), in the parent's frame.
+                let child = ing.trajectory_frame.as_deref().unwrap_or(&ing.base_frame);
+                for t in tf.transforms.iter().filter(|t| t.child_frame_id == child) {
+                    ix.trajectory_child.get_or_insert_with(|| child.to_string());
+                    ix.trajectory.push((secs(t.header.stamp), t.transform));
+                    used = true;
+                }
+            }
             RosMessage::CameraInfo(info) => {
                 ix.infos.push((topic.clone(), *info));
                 used = true;
