@@ -61,11 +61,13 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), DatasetError> {
     fs::rename(&tmp, path).map_err(io_err(path))
 }
 
-/// A dataset folder being written: everything goes under `staging` until [`DatasetWriter::commit`].
+/// A dataset folder being written: everything goes under `staging` until [`DatasetWriter::commit`]. Every
+/// file written is remembered with its size, for the manifest ([`DatasetWriter::files`]).
 pub struct DatasetWriter {
     pub target: PathBuf,
     pub staging: PathBuf,
     committed: bool,
+    files: std::cell::RefCell<std::collections::BTreeMap<String, u64>>,
 }
 
 impl DatasetWriter {
@@ -100,6 +102,7 @@ impl DatasetWriter {
             target: target.to_path_buf(),
             staging,
             committed: false,
+            files: Default::default(),
         })
     }
 
@@ -114,7 +117,16 @@ impl DatasetWriter {
         if let Some(dir) = p.parent() {
             fs::create_dir_all(dir).map_err(io_err(dir))?;
         }
-        fs::write(&p, bytes).map_err(io_err(&p))
+        fs::write(&p, bytes).map_err(io_err(&p))?;
+        self.files
+            .borrow_mut()
+            .insert(rel.to_string(), bytes.len() as u64);
+        Ok(())
+    }
+
+    /// Every file written so far (dataset-relative path → bytes).
+    pub fn files(&self) -> std::collections::BTreeMap<String, u64> {
+        self.files.borrow().clone()
     }
 
     /// Moves the finished dataset into place (replacing an old one when overwriting was allowed).

@@ -353,6 +353,43 @@ impl RigConfig {
         Ok(m)
     }
 
+    /// The rig file of a [`Rig`]: its calibration in the Spires schema, camera `i` on `topic(i)`, the
+    /// ingest block left at its defaults.
+    pub fn from_rig(rig: &crate::rig::Rig, topic: impl Fn(usize) -> String) -> RigConfig {
+        let cameras = rig
+            .cameras
+            .iter()
+            .enumerate()
+            .map(|(i, c)| CameraEntry {
+                label: c.name.clone(),
+                topic: topic(i),
+                camera_info_topic: None,
+                t_cam_lidar: Some(se3_to_t_xyz_q_xyzw(&c.t_lidar_cam.inverse())),
+                t_cam_imu: None,
+                intrinsics: Some(vec![c.model.fx, c.model.fy, c.model.cx, c.model.cy]),
+                extra_params: Some(Self::model_fields(&c.model).1),
+                image_height: Some(c.model.height),
+                image_width: Some(c.model.width),
+            })
+            .collect();
+        RigConfig {
+            sensor: SensorSection {
+                cameras,
+                camera_model: rig
+                    .cameras
+                    .first()
+                    .map(|c| Self::model_fields(&c.model).0.to_string()),
+                camera_fov: None,
+                max_time_diff_camera_and_pose: Some(0.025),
+                t_base_lidar: Some(se3_to_t_xyz_q_xyzw(&rig.t_base_lidar)),
+            },
+            ingest: IngestSection {
+                base_frame: rig.base_frame.clone(),
+                ..IngestSection::default()
+            },
+        }
+    }
+
     /// The file's model name and coefficients for a [`CameraModel`] (inverse of [`Self::camera_model`]).
     pub fn model_fields(m: &CameraModel) -> (&'static str, Vec<f64>) {
         match m.distortion {

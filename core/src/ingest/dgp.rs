@@ -20,9 +20,7 @@ use serde_json::Value;
 
 use super::npz;
 use crate::camera::{CameraModel, Distortion};
-use crate::dataset::{
-    self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, NsFrame, Transforms,
-};
+use crate::dataset::{self, DatasetError, DatasetWriter, NsFrame, Transforms};
 use crate::geometry::Se3;
 use crate::gpu::{Gpu, GpuError};
 use crate::lidar::{images, normals, products};
@@ -289,13 +287,7 @@ pub async fn import_dgp(
     };
     rig.validate().map_err(|e| cbad(e.to_string()))?;
 
-    let mut w = DatasetWriter::create(out, overwrite)?;
-    let mut files: BTreeMap<String, u64> = BTreeMap::new();
-    let mut put = |w: &mut DatasetWriter, rel: String, bytes: &[u8]| -> Result<(), DgpError> {
-        w.write(&rel, bytes)?;
-        files.insert(rel, bytes.len() as u64);
-        Ok(())
-    };
+    let w = DatasetWriter::create(out, overwrite)?;
     let mut frames = Vec::new();
     let (mut times, mut lidar_poses, mut base_poses) = (Vec::new(), Vec::new(), Vec::new());
     let mut depth_pixels: BTreeMap<String, usize> = BTreeMap::new();
@@ -338,8 +330,8 @@ pub async fn import_dgp(
         cloud.set_scalar("ring", ring.iter().map(|&r| r as f32).collect());
         cloud.set_scalar("column", column.iter().map(|&c| c as f32).collect());
         let ply = write_ply_bytes(&cloud).map_err(|e| invalid(&npz_path, e.to_string()))?;
-        put(&mut w, format!("lidar/raw/{name}.ply"), &ply)?;
-        put(&mut w, format!("lidar/deskewed/{name}.ply"), &ply)?;
+        w.write(&format!("lidar/raw/{name}.ply"), &ply)?;
+        w.write(&format!("lidar/deskewed/{name}.ply"), &ply)?;
         let t_world_lidar = lidar.pose;
         let t_lidar = stamp_of(&lidar.filename).unwrap_or(k as f64);
         times.push(t_lidar);
@@ -396,44 +388,25 @@ pub async fn import_dgp(
         let made = products::keyframe_products(gpu, &sweep, &inputs).await?;
         for ((cam, p), (rgb, (t_cam, pose))) in cams.iter().zip(made).zip(rgbs.iter().zip(&stamps))
         {
-            let (cn, m) = (cam.name.as_str(), &cam.model);
-            let (wd, ht) = (m.width, m.height);
-            *depth_pixels.entry(cn.to_string()).or_insert(0) += p
+            *depth_pixels.entry(cam.name.clone()).or_insert(0) += p
                 .depth
                 .iter()
                 .filter(|&&d| d > 0 && d != images::SKY_DEPTH)
                 .count();
-            let image_rel = format!("images/{cn}/{name}.png");
-            put(&mut w, image_rel.clone(), &png_rgb(wd, ht, rgb))?;
-            let depth_rel = format!("lidar_depth/{cn}/{name}.png");
-            let normal_rel = format!("lidar_normals/{cn}/{name}.png");
-            let sky_rel = format!("sky_mask/{cn}/{name}.png");
-            put(&mut w, depth_rel.clone(), &png_gray16(wd, ht, &p.depth))?;
-            put(&mut w, normal_rel.clone(), &png_rgb(wd, ht, &p.normals))?;
-            put(&mut w, sky_rel.clone(), &png_gray8(wd, ht, &p.sky))?;
-            let mut f = NsFrame::new(image_rel, m, pose);
-            f.depth_file_path = Some(depth_rel);
-            f.normal_file_path = Some(normal_rel);
-            f.sky_mask_path = Some(sky_rel);
-            f.camera = Some(cn.to_string());
-            f.keyframe = Some(k);
-            f.time = Some(*t_cam);
-            frames.push(f);
+            frames.push(products::write_camera(&w, cam, k, *t_cam, pose, rgb, &p)?);
         }
     }
     progress(total, total);
     let n_images = frames.len();
-    put(
-        &mut w,
-        "poses/lidar_tum.txt".into(),
+    w.write(
+        "poses/lidar_tum.txt",
         dataset::tum_string(&times, &lidar_poses).as_bytes(),
     )?;
-    put(
-        &mut w,
-        "poses/base_tum.txt".into(),
+    w.write(
+        "poses/base_tum.txt",
         dataset::tum_string(&times, &base_poses).as_bytes(),
     )?;
-    put(&mut w, "calib/rig.json".into(), json(&rig).as_bytes())?;
+    w.write("calib/rig.json", json(&rig).as_bytes())?;
     // A scene is a handful of samples: with three or more, the middle one of every camera is held out for
     // novel-view evaluation (an interpolation between its neighbours); otherwise every image trains.
     let held_out = |f: &NsFrame| total >= 3 && f.keyframe == Some(total / 2);
@@ -451,11 +424,7 @@ pub async fn import_dgp(
         frames,
         depth_unit_scale_factor: Some(1.0 / images::DEPTH_SCALE as f64),
     };
-    put(
-        &mut w,
-        "transforms.json".into(),
-        json(&transforms).as_bytes(),
-    )?;
+    w.write("transforms.json", json(&transforms).as_bytes())?;
     let summary = DgpSummary {
         path: out.to_path_buf(),
         keyframes: total,
@@ -471,7 +440,7 @@ pub async fn import_dgp(
         "downscale": scale,
         "summary": &summary,
         "notes": "no per-point time in DGP sweeps: lidar/deskewed = lidar/raw; rings and columns from an angular grid",
-        "files": files,
+        "files": w.files(),
     });
     w.write("manifest.json", json(&manifest).as_bytes())?;
     let path = w.commit()?;

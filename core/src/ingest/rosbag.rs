@@ -23,9 +23,7 @@ use super::mcap::{BagError, BagReader};
 use super::ros::{self, CameraInfo, LidarScan, RgbImage, RosMessage};
 use super::tf::TfGraph;
 use crate::camera::CameraModel;
-use crate::dataset::{
-    self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, NsFrame, Transforms,
-};
+use crate::dataset::{self, DatasetError, DatasetWriter, NsFrame, Transforms};
 use crate::geometry::{Se3, Trajectory};
 use crate::gpu::{Gpu, GpuError};
 use crate::lidar::{deskew, images, normals, products};
@@ -590,10 +588,7 @@ pub async fn ingest_bag(
     }
 
     // ---- pass 2: assemble and write ---------------------------------------------------------------
-    let mut out = Output {
-        w: writer,
-        files: BTreeMap::new(),
-    };
+    let out = writer;
     let mut want_image: BTreeMap<u64, Vec<(usize, usize)>> = BTreeMap::new();
     let mut want_sweep: BTreeMap<u64, Vec<usize>> = BTreeMap::new();
     for (p, kf) in chosen.iter().enumerate() {
@@ -656,7 +651,7 @@ pub async fn ingest_bag(
             if done {
                 let kf = slots[p].take().expect("checked");
                 write_keyframe(
-                    &mut out,
+                    &out,
                     &mut state,
                     gpu,
                     &rig,
@@ -702,25 +697,25 @@ pub async fn ingest_bag(
     let times: Vec<f64> = order.iter().map(|&i| times[i]).collect();
     let records: Vec<KeyframeRecord> = order.iter().map(|&i| records[i].clone()).collect();
     frames.sort_by_key(|f| f.keyframe);
-    out.put(
+    out.write(
         "poses/base_tum.txt",
         dataset::tum_string(&times, &base_poses).as_bytes(),
     )?;
-    out.put(
+    out.write(
         "poses/lidar_tum.txt",
         dataset::tum_string(&times, &lidar_poses).as_bytes(),
     )?;
-    out.put(
+    out.write(
         "poses/odometry_lidar_tum.txt",
         dataset::tum_string(trajectory.stamps(), trajectory.poses()).as_bytes(),
     )?;
     for (ci, c) in rig.cameras.iter().enumerate() {
-        out.put(
+        out.write(
             &format!("poses/{}_tum.txt", c.name),
             dataset::tum_string(&times, &cam_poses[ci]).as_bytes(),
         )?;
     }
-    out.put("calib/rig.json", json(&rig).as_bytes())?;
+    out.write("calib/rig.json", json(&rig).as_bytes())?;
     let lidar = LidarCalib {
         topic: ing.lidar_topic.clone(),
         frame: lidar_frame.clone(),
@@ -728,7 +723,7 @@ pub async fn ingest_bag(
         columns,
         min_range: ing.min_range,
     };
-    out.put("calib/lidar.json", json(&lidar).as_bytes())?;
+    out.write("calib/lidar.json", json(&lidar).as_bytes())?;
     let n_images = frames.len();
     let (mut train, mut val) = (Vec::new(), Vec::new());
     for f in &frames {
@@ -744,9 +739,9 @@ pub async fn ingest_bag(
         train_filenames: train,
         val_filenames: val,
     };
-    out.put("transforms.json", json(&transforms).as_bytes())?;
+    out.write("transforms.json", json(&transforms).as_bytes())?;
     let mut summary = IngestSummary {
-        path: out.w.target.clone(),
+        path: out.target.clone(),
         bag: file.clone(),
         keyframes: records.len(),
         images: n_images,
@@ -771,10 +766,10 @@ pub async fn ingest_bag(
         cameras: rig.cameras.iter().map(|c| c.name.as_str()).collect(),
         summary: &summary,
         encodings: encodings(),
-        files: out.files.clone(),
+        files: out.files(),
     };
-    out.put("manifest.json", json(&manifest).as_bytes())?;
-    summary.path = out.w.commit()?;
+    out.write("manifest.json", json(&manifest).as_bytes())?;
+    summary.path = out.commit()?;
     Ok(summary)
 }
 
@@ -804,20 +799,6 @@ fn reader_decode(file: &str, msg: &super::mcap::BagMessage, e: ros::DecodeError)
 
 fn json(v: &impl Serialize) -> String {
     serde_json::to_string_pretty(v).expect("plain data serialises")
-}
-
-/// The dataset being written, with every file's size for the manifest.
-struct Output {
-    w: DatasetWriter,
-    files: BTreeMap<String, u64>,
-}
-
-impl Output {
-    fn put(&mut self, rel: &str, bytes: &[u8]) -> Result<(), DatasetError> {
-        self.w.write(rel, bytes)?;
-        self.files.insert(rel.to_string(), bytes.len() as u64);
-        Ok(())
-    }
 }
 
 #[derive(Default)]
@@ -886,7 +867,7 @@ fn encodings() -> BTreeMap<&'static str, &'static str> {
 
 #[allow(clippy::too_many_arguments)]
 async fn write_keyframe(
-    out: &mut Output,
+    out: &DatasetWriter,
     st: &mut WriteState,
     gpu: &Gpu,
     rig: &Rig,
@@ -934,9 +915,9 @@ async fn write_keyframe(
         })
     };
     let rel = format!("lidar/raw/{name}.ply");
-    out.put(&rel, &ply(&cloud(&scan.positions), &rel)?)?;
+    out.write(&rel, &ply(&cloud(&scan.positions), &rel)?)?;
     let rel = format!("lidar/deskewed/{name}.ply");
-    out.put(&rel, &ply(&cloud(&desk.positions), &rel)?)?;
+    out.write(&rel, &ply(&cloud(&desk.positions), &rel)?)?;
 
     let t_world_lidar = trajectory
         .at(kf.time)
@@ -977,28 +958,19 @@ async fn write_keyframe(
         st.cam_poses = vec![Vec::new(); rig.cameras.len()];
     }
     for (ci, ((cam, p), img)) in rig.cameras.iter().zip(made).zip(&rgbs).enumerate() {
-        let (cn, m) = (cam.name.as_str(), &cam.model);
-        let (w, h) = (m.width, m.height);
         // Each camera at its own trigger time (within camera_sync of the set's).
         let t_cam = kf.images[ci].time;
         let t_world_cam = trajectory.at(t_cam).unwrap_or(t_world_lidar) * cam.t_lidar_cam;
         st.cam_poses[ci].push(t_world_cam);
-        let image_rel = format!("images/{cn}/{name}.png");
-        out.put(&image_rel, &png_rgb(w, h, &img.pixels))?;
-        let depth_rel = format!("lidar_depth/{cn}/{name}.png");
-        let normal_rel = format!("lidar_normals/{cn}/{name}.png");
-        let sky_rel = format!("sky_mask/{cn}/{name}.png");
-        out.put(&depth_rel, &png_gray16(w, h, &p.depth))?;
-        out.put(&normal_rel, &png_rgb(w, h, &p.normals))?;
-        out.put(&sky_rel, &png_gray8(w, h, &p.sky))?;
-        let mut f = NsFrame::new(image_rel, m, &t_world_cam);
-        f.depth_file_path = Some(depth_rel);
-        f.normal_file_path = Some(normal_rel);
-        f.sky_mask_path = Some(sky_rel);
-        f.camera = Some(cn.to_string());
-        f.keyframe = Some(k);
-        f.time = Some(t_cam);
-        st.frames.push(f);
+        st.frames.push(products::write_camera(
+            out,
+            cam,
+            k,
+            t_cam,
+            &t_world_cam,
+            &img.pixels,
+            &p,
+        )?);
     }
     st.records.push(KeyframeRecord {
         index: k,

@@ -20,14 +20,10 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use serde::Serialize;
 
-use super::config::{
-    se3_from_t_xyz_q_xyzw, se3_to_t_xyz_q_xyzw, CameraEntry, ConfigError, RigConfig, SensorSection,
-};
+use super::config::{se3_from_t_xyz_q_xyzw, CameraEntry, ConfigError, RigConfig};
 use super::pcd::{self, PcdError};
 use super::poses::{self, PoseError};
-use crate::dataset::{
-    self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, NsFrame, Transforms,
-};
+use crate::dataset::{self, png_rgb, DatasetError, DatasetWriter, NsFrame, Transforms};
 use crate::geometry::{Se3, Trajectory};
 use crate::gpu::{Gpu, GpuError};
 use crate::lidar::{images, normals, products};
@@ -372,25 +368,17 @@ pub async fn import_spires(
             .zip(rgbs.iter().zip(&set))
             .enumerate()
         {
-            let (cn, m) = (cam.name.as_str(), &cam.model);
             let t_world_cam = lidar_traj.at(*t_cam).unwrap_or(t_world_lidar) * cam.t_lidar_cam;
             cam_poses[ci].push(t_world_cam);
-            let image_rel = format!("images/{cn}/{name}.png");
-            w.write(&image_rel, &png_rgb(m.width, m.height, rgb))?;
-            let depth_rel = format!("lidar_depth/{cn}/{name}.png");
-            let normal_rel = format!("lidar_normals/{cn}/{name}.png");
-            let sky_rel = format!("sky_mask/{cn}/{name}.png");
-            w.write(&depth_rel, &png_gray16(m.width, m.height, &p.depth))?;
-            w.write(&normal_rel, &png_rgb(m.width, m.height, &p.normals))?;
-            w.write(&sky_rel, &png_gray8(m.width, m.height, &p.sky))?;
-            let mut f = NsFrame::new(image_rel, m, &t_world_cam);
-            f.depth_file_path = Some(depth_rel);
-            f.normal_file_path = Some(normal_rel);
-            f.sky_mask_path = Some(sky_rel);
-            f.camera = Some(cn.to_string());
-            f.keyframe = Some(k);
-            f.time = Some(*t_cam);
-            frames.push(f);
+            frames.push(products::write_camera(
+                &w,
+                cam,
+                k,
+                *t_cam,
+                &t_world_cam,
+                rgb,
+                &p,
+            )?);
         }
         times.push(t);
         lidar_poses.push(t_world_lidar);
@@ -468,38 +456,11 @@ pub fn export_spires(dataset: &Path, out: &Path) -> Result<usize, SpiresError> {
         lidar.clone()
     };
     let w = DatasetWriter::create(out, false)?;
-    let cameras = rig
-        .cameras
-        .iter()
-        .enumerate()
-        .map(|(i, c)| {
-            let (_, extra) = RigConfig::model_fields(&c.model);
-            CameraEntry {
-                label: c.name.clone(),
-                topic: format!("/alphasense_driver_ros/cam{i}/debayered/image/compressed"),
-                camera_info_topic: None,
-                t_cam_lidar: Some(se3_to_t_xyz_q_xyzw(&c.t_lidar_cam.inverse())),
-                t_cam_imu: None,
-                intrinsics: Some(vec![c.model.fx, c.model.fy, c.model.cx, c.model.cy]),
-                extra_params: Some(extra),
-                image_height: Some(c.model.height),
-                image_width: Some(c.model.width),
-            }
-        })
-        .collect();
-    let cfg = RigConfig {
-        sensor: SensorSection {
-            cameras,
-            camera_model: rig
-                .cameras
-                .first()
-                .map(|c| RigConfig::model_fields(&c.model).0.to_string()),
-            camera_fov: None,
-            max_time_diff_camera_and_pose: Some(0.025),
-            t_base_lidar: Some(se3_to_t_xyz_q_xyzw(&rig.t_base_lidar)),
-        },
-        ingest: Default::default(),
-    };
+    let mut cfg = RigConfig::from_rig(&rig, |i| {
+        format!("/alphasense_driver_ros/cam{i}/debayered/image/compressed")
+    });
+    // Spires' own file has no ingest block.
+    cfg.ingest = Default::default();
     w.write("sensor.yaml", cfg.to_yaml().as_bytes())?;
     let lidar_base = rig.t_base_lidar.inverse();
     let base = Trajectory::new(

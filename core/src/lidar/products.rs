@@ -6,6 +6,7 @@
 use glam::DVec3;
 
 use super::{images, normals, project, sky};
+use crate::dataset::{png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, NsFrame};
 use crate::geometry::Se3;
 use crate::gpu::{Gpu, GpuError};
 use crate::rig::RigCamera;
@@ -89,4 +90,37 @@ pub async fn keyframe_products(
         });
     }
     Ok(out)
+}
+
+/// Writes one camera's image of keyframe `k` and its lidar products in the dataset layout
+/// (`images/`, `lidar_depth/`, `lidar_normals/`, `sky_mask/` `{camera}/{k:05}.png`) and returns its
+/// `transforms.json` frame. Every writer of datasets (generator, bag ingest, importers) goes through here.
+pub fn write_camera(
+    w: &DatasetWriter,
+    cam: &RigCamera,
+    k: usize,
+    time: f64,
+    t_world_cam: &Se3,
+    rgb: &[[u8; 3]],
+    p: &CameraProducts,
+) -> Result<NsFrame, DatasetError> {
+    let (cn, m) = (cam.name.as_str(), &cam.model);
+    let (wd, ht) = (m.width, m.height);
+    let name = format!("{k:05}");
+    let image = format!("images/{cn}/{name}.png");
+    let depth = format!("lidar_depth/{cn}/{name}.png");
+    let normal = format!("lidar_normals/{cn}/{name}.png");
+    let sky = format!("sky_mask/{cn}/{name}.png");
+    w.write(&image, &png_rgb(wd, ht, rgb))?;
+    w.write(&depth, &png_gray16(wd, ht, &p.depth))?;
+    w.write(&normal, &png_rgb(wd, ht, &p.normals))?;
+    w.write(&sky, &png_gray8(wd, ht, &p.sky))?;
+    let mut f = NsFrame::new(image, m, t_world_cam);
+    f.depth_file_path = Some(depth);
+    f.normal_file_path = Some(normal);
+    f.sky_mask_path = Some(sky);
+    f.camera = Some(cn.to_string());
+    f.keyframe = Some(k);
+    f.time = Some(time);
+    Ok(f)
 }

@@ -14,9 +14,7 @@ use super::sensors::Sweep;
 use super::Preset;
 use crate::dataset::png_rgb;
 use crate::geometry::{Se3, Trajectory};
-use crate::ingest::config::{
-    se3_to_t_xyz_q_xyzw, CameraEntry, IngestSection, RigConfig, SensorSection,
-};
+use crate::ingest::config::{IngestSection, RigConfig};
 use crate::ingest::mcap::BagError;
 use crate::ingest::ros::{
     CameraInfo, CompressedImage, Header, Odometry, PointCloud2, PointField, RegionOfInterest,
@@ -43,50 +41,18 @@ pub fn camera_info_topic(i: usize) -> String {
 /// The rig file for a bag of `preset`: the Spires `sensor.yaml` schema with this rig's calibration, and an
 /// `ingest:` block that keeps every keyframe (the synthetic keyframes are already spaced).
 pub fn rig_config(preset: &Preset) -> RigConfig {
-    let cameras = preset
-        .rig
-        .cameras
-        .iter()
-        .enumerate()
-        .map(|(i, c)| {
-            let (_, extra) = RigConfig::model_fields(&c.model);
-            CameraEntry {
-                label: c.name.clone(),
-                topic: image_topic(i),
-                camera_info_topic: None,
-                t_cam_lidar: Some(se3_to_t_xyz_q_xyzw(&c.t_lidar_cam.inverse())),
-                t_cam_imu: None,
-                intrinsics: Some(vec![c.model.fx, c.model.fy, c.model.cx, c.model.cy]),
-                extra_params: Some(extra),
-                image_height: Some(c.model.height),
-                image_width: Some(c.model.width),
-            }
-        })
-        .collect();
-    let model = preset
-        .rig
-        .cameras
-        .first()
-        .map(|c| RigConfig::model_fields(&c.model).0.to_string());
-    RigConfig {
-        sensor: SensorSection {
-            cameras,
-            camera_model: model,
-            camera_fov: None,
-            max_time_diff_camera_and_pose: Some(0.025),
-            t_base_lidar: Some(se3_to_t_xyz_q_xyzw(&preset.rig.t_base_lidar)),
-        },
-        ingest: IngestSection {
-            lidar_topic: LIDAR_TOPIC.into(),
-            trajectory_topic: Some(ODOMETRY_TOPIC.into()),
-            base_frame: preset.rig.base_frame.clone(),
-            keyframe_distance: 0.0,
-            keyframe_angle_deg: 0.0,
-            min_range: preset.lidar.min_range,
-            lidar_columns: None,
-            ..IngestSection::default()
-        },
-    }
+    let mut cfg = RigConfig::from_rig(&preset.rig, image_topic);
+    cfg.ingest = IngestSection {
+        lidar_topic: LIDAR_TOPIC.into(),
+        trajectory_topic: Some(ODOMETRY_TOPIC.into()),
+        base_frame: preset.rig.base_frame.clone(),
+        keyframe_distance: 0.0,
+        keyframe_angle_deg: 0.0,
+        min_range: preset.lidar.min_range,
+        lidar_columns: None,
+        ..IngestSection::default()
+    };
+    cfg
 }
 
 /// The Hesai ROS 2 driver's point layout: x y z intensity (f32), ring (u16), timestamp (f64, absolute s,

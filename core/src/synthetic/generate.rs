@@ -13,7 +13,7 @@ use super::sensors::{render_camera, simulate_sweep, LidarNoise, RenderOptions, S
 use super::world::{Label, World};
 use super::Preset;
 use crate::dataset::{
-    self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, NsFrame, Transforms,
+    self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, Transforms,
 };
 use crate::eval::occupancy::OccupancyGrid;
 use crate::geometry::{Se3, Trajectory};
@@ -75,20 +75,6 @@ struct Manifest<'a> {
     labels: BTreeMap<u8, &'static str>,
     encodings: BTreeMap<&'static str, &'static str>,
     files: BTreeMap<String, u64>,
-}
-
-/// Tracks every file written, for the manifest.
-struct Out {
-    w: DatasetWriter,
-    files: BTreeMap<String, u64>,
-}
-
-impl Out {
-    fn put(&mut self, rel: String, bytes: &[u8]) -> Result<(), DatasetError> {
-        self.w.write(&rel, bytes)?;
-        self.files.insert(rel, bytes.len() as u64);
-        Ok(())
-    }
 }
 
 fn frame_name(k: usize) -> String {
@@ -167,10 +153,7 @@ pub async fn generate_recording(
     mut recorder: Option<&mut dyn SensorRecorder>,
 ) -> Result<SynthSummary, SynthError> {
     let world = World::generate(preset.world.clone(), preset.seed);
-    let mut o = Out {
-        w: DatasetWriter::create(out, overwrite)?,
-        files: BTreeMap::new(),
-    };
+    let o = DatasetWriter::create(out, overwrite)?;
     let odo = odometry(preset);
     if let Some(rec) = recorder.as_deref_mut() {
         rec.begin(preset, &odo).map_err(SynthError::Other)?;
@@ -223,12 +206,12 @@ pub async fn generate_recording(
         let raw: Vec<DVec3> = sweep.points.iter().map(|p| p.position).collect();
         let times: Vec<f64> = sweep.points.iter().map(|p| p.time).collect();
         let rel = format!("lidar/raw/{name}.ply");
-        o.put(rel.clone(), &ply(&sweep_cloud(&sweep, &raw), &rel)?)?;
+        o.write(&rel.clone(), &ply(&sweep_cloud(&sweep, &raw), &rel)?)?;
         let desk = deskew::deskew(&raw, &times, &odo, t_img)
             .map_err(|e| SynthError::Other(format!("keyframe {k}: {e}")))?;
         let rel = format!("lidar/deskewed/{name}.ply");
-        o.put(
-            rel.clone(),
+        o.write(
+            &rel.clone(),
             &ply(&sweep_cloud(&sweep, &desk.positions), &rel)?,
         )?;
         records.push(KeyframeRecord {
@@ -281,17 +264,14 @@ pub async fn generate_recording(
                 },
             );
             let cn = cam.name.as_str();
-            o.put(
-                format!("images/{cn}/{name}.png"),
-                &png_rgb(w, h, &frame.rgb),
-            )?;
+            // The image itself is written with the lidar products below (`products::write_camera`).
             let gt_depth: Vec<u16> = frame
                 .range
                 .iter()
                 .map(|&r| images::encode_depth(r))
                 .collect();
-            o.put(
-                format!("gt/depth/{cn}/{name}.png"),
+            o.write(
+                &format!("gt/depth/{cn}/{name}.png"),
                 &png_gray16(w, h, &gt_depth),
             )?;
             let gt_n: Vec<[u8; 3]> = frame
@@ -299,15 +279,21 @@ pub async fn generate_recording(
                 .iter()
                 .map(|n| images::encode_normal(glam::Vec3::from_array(*n).as_dvec3()))
                 .collect();
-            o.put(format!("gt/normals/{cn}/{name}.png"), &png_rgb(w, h, &gt_n))?;
+            o.write(
+                &format!("gt/normals/{cn}/{name}.png"),
+                &png_rgb(w, h, &gt_n),
+            )?;
             let gt_sky: Vec<u8> = frame
                 .label
                 .iter()
                 .map(|&l| if l == Label::Sky as u8 { 255 } else { 0 })
                 .collect();
-            o.put(format!("gt/sky/{cn}/{name}.png"), &png_gray8(w, h, &gt_sky))?;
-            o.put(
-                format!("gt/semantic/{cn}/{name}.png"),
+            o.write(
+                &format!("gt/sky/{cn}/{name}.png"),
+                &png_gray8(w, h, &gt_sky),
+            )?;
+            o.write(
+                &format!("gt/semantic/{cn}/{name}.png"),
                 &png_gray8(w, h, &frame.label),
             )?;
             // What the camera observed: every pixel's surface; free space along every 4th pixel's ray (in x and y).
@@ -359,22 +345,16 @@ pub async fn generate_recording(
             .collect();
         let made = products::keyframe_products(gpu, &sweep_input, &cams_rgb).await?;
         for (ci, (cam, p)) in preset.rig.cameras.iter().zip(made).enumerate() {
-            let (cn, model) = (cam.name.as_str(), &cam.model);
-            let (w, h) = (model.width, model.height);
-            let depth_rel = format!("lidar_depth/{cn}/{name}.png");
-            let normal_rel = format!("lidar_normals/{cn}/{name}.png");
-            let sky_rel = format!("sky_mask/{cn}/{name}.png");
-            o.put(depth_rel.clone(), &png_gray16(w, h, &p.depth))?;
-            o.put(normal_rel.clone(), &png_rgb(w, h, &p.normals))?;
-            o.put(sky_rel.clone(), &png_gray8(w, h, &p.sky))?;
-            let mut f = NsFrame::new(format!("images/{cn}/{name}.png"), model, &cam_poses[ci][k]);
-            f.depth_file_path = Some(depth_rel);
-            f.normal_file_path = Some(normal_rel);
-            f.sky_mask_path = Some(sky_rel);
-            f.camera = Some(cn.to_string());
-            f.keyframe = Some(k);
-            f.time = Some(t_img);
-            frames.push(f);
+            let t_world_cam = cam_poses[ci][k];
+            frames.push(products::write_camera(
+                &o,
+                cam,
+                k,
+                t_img,
+                &t_world_cam,
+                &rgbs[ci],
+                &p,
+            )?);
         }
         if let Some(rec) = recorder.as_deref_mut() {
             for (ci, rgb) in rgbs.iter().enumerate() {
@@ -405,12 +385,12 @@ pub async fn generate_recording(
     });
     let gt_points = gt.len();
     observed.mark_occupied(&gt.positions);
-    o.put("gt/cloud.ply".into(), &ply(&gt, "gt/cloud.ply")?)?;
-    o.put("gt/mesh.ply".into(), &mesh_ply(&world))?;
+    o.write("gt/cloud.ply", &ply(&gt, "gt/cloud.ply")?)?;
+    o.write("gt/mesh.ply", &mesh_ply(&world))?;
     let obs = observed
         .to_bytes()
         .map_err(|e| SynthError::Other(format!("gt/observed.bin: {e}")))?;
-    o.put("gt/observed.bin".into(), &obs)?;
+    o.write("gt/observed.bin", &obs)?;
     progress(Progress {
         stage: "ground truth",
         done: 3,
@@ -418,27 +398,27 @@ pub async fn generate_recording(
     });
 
     // Poses, calibration, transforms.json, manifest.
-    o.put(
-        "poses/base_tum.txt".into(),
+    o.write(
+        "poses/base_tum.txt",
         dataset::tum_string(&image_times, &base_poses).as_bytes(),
     )?;
-    o.put(
-        "poses/lidar_tum.txt".into(),
+    o.write(
+        "poses/lidar_tum.txt",
         dataset::tum_string(&image_times, &lidar_poses).as_bytes(),
     )?;
-    o.put(
-        "poses/odometry_lidar_tum.txt".into(),
+    o.write(
+        "poses/odometry_lidar_tum.txt",
         dataset::tum_string(odo.stamps(), odo.poses()).as_bytes(),
     )?;
     for (ci, cn) in cams.iter().enumerate() {
-        o.put(
-            format!("poses/{cn}_tum.txt"),
+        o.write(
+            &format!("poses/{cn}_tum.txt"),
             dataset::tum_string(&image_times, &cam_poses[ci]).as_bytes(),
         )?;
     }
     let json = |v: &dyn erased::Json| v.to_json();
-    o.put("calib/rig.json".into(), json(&preset.rig).as_bytes())?;
-    o.put("calib/lidar.json".into(), json(&preset.lidar).as_bytes())?;
+    o.write("calib/rig.json", json(&preset.rig).as_bytes())?;
+    o.write("calib/lidar.json", json(&preset.lidar).as_bytes())?;
     let n_frames = frames.len();
     // Hold out every 10th keyframe (all its cameras) for novel-view evaluation.
     let (mut train, mut val) = (Vec::new(), Vec::new());
@@ -455,7 +435,7 @@ pub async fn generate_recording(
         train_filenames: train,
         val_filenames: val,
     };
-    o.put("transforms.json".into(), json(&transforms).as_bytes())?;
+    o.write("transforms.json", json(&transforms).as_bytes())?;
     let labels = Label::ALL.iter().map(|l| (*l as u8, l.name())).collect();
     let encodings = BTreeMap::from([
         ("images", "8-bit RGB PNG, display gamma 2.2"),
@@ -473,7 +453,7 @@ pub async fn generate_recording(
         ("gt/cloud.ply", "surface samples of everything any sensor saw, double x/y/z"),
         ("gt/observed.bin", "occupancy grid (log-odds), see eval::occupancy"),
     ]);
-    let files = o.files.clone();
+    let files = o.files();
     let manifest = Manifest {
         layout_version: dataset::LAYOUT_VERSION,
         generator: GENERATOR_VERSION,
@@ -486,12 +466,12 @@ pub async fn generate_recording(
     };
     let text =
         serde_json::to_string_pretty(&manifest).map_err(|e| SynthError::Other(e.to_string()))?;
-    o.put("manifest.json".into(), text.as_bytes())?;
-    let n_files = o.files.len();
+    o.write("manifest.json", text.as_bytes())?;
+    let n_files = o.files().len();
     if let Some(rec) = recorder {
         rec.finish().map_err(SynthError::Other)?;
     }
-    let path = o.w.commit()?;
+    let path = o.commit()?;
     Ok(SynthSummary {
         path,
         keyframes: preset.keyframes,
