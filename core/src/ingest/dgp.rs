@@ -20,7 +20,7 @@ use serde_json::Value;
 
 use super::npz;
 use crate::camera::{CameraModel, Distortion};
-use crate::dataset::{self, DatasetError, DatasetWriter, NsFrame, Transforms};
+use crate::dataset::{self, DatasetError, DatasetWriter, NsFrame};
 use crate::geometry::Se3;
 use crate::gpu::{Gpu, GpuError};
 use crate::lidar::{images, normals, products};
@@ -410,20 +410,7 @@ pub async fn import_dgp(
     // A scene is a handful of samples: with three or more, the middle one of every camera is held out for
     // novel-view evaluation (an interpolation between its neighbours); otherwise every image trains.
     let held_out = |f: &NsFrame| total >= 3 && f.keyframe == Some(total / 2);
-    let transforms = Transforms {
-        train_filenames: frames
-            .iter()
-            .filter(|f| !held_out(f))
-            .map(|f| f.file_path.clone())
-            .collect(),
-        val_filenames: frames
-            .iter()
-            .filter(|f| held_out(f))
-            .map(|f| f.file_path.clone())
-            .collect(),
-        frames,
-        depth_unit_scale_factor: Some(1.0 / images::DEPTH_SCALE as f64),
-    };
+    let transforms = products::transforms(frames, held_out);
     w.write("transforms.json", json(&transforms).as_bytes())?;
     let summary = DgpSummary {
         path: out.to_path_buf(),

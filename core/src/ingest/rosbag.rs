@@ -23,10 +23,10 @@ use super::mcap::{BagError, BagReader};
 use super::ros::{self, CameraInfo, LidarScan, RgbImage, RosMessage};
 use super::tf::TfGraph;
 use crate::camera::CameraModel;
-use crate::dataset::{self, DatasetError, DatasetWriter, NsFrame, Transforms};
+use crate::dataset::{self, DatasetError, DatasetWriter, NsFrame};
 use crate::geometry::{Se3, Trajectory};
 use crate::gpu::{Gpu, GpuError};
-use crate::lidar::{deskew, images, normals, products};
+use crate::lidar::{deskew, normals, products};
 use crate::pointcloud::{write_ply_bytes, PointCloud};
 use crate::rig::{Rig, RigCamera};
 
@@ -725,20 +725,7 @@ pub async fn ingest_bag(
     };
     out.write("calib/lidar.json", json(&lidar).as_bytes())?;
     let n_images = frames.len();
-    let (mut train, mut val) = (Vec::new(), Vec::new());
-    for f in &frames {
-        if f.keyframe.unwrap_or(0) % 10 == 5 {
-            val.push(f.file_path.clone());
-        } else {
-            train.push(f.file_path.clone());
-        }
-    }
-    let transforms = Transforms {
-        frames,
-        depth_unit_scale_factor: Some(1.0 / images::DEPTH_SCALE as f64),
-        train_filenames: train,
-        val_filenames: val,
-    };
+    let transforms = products::transforms(frames, products::every_tenth_keyframe);
     out.write("transforms.json", json(&transforms).as_bytes())?;
     let mut summary = IngestSummary {
         path: out.target.clone(),

@@ -23,10 +23,10 @@ use serde::Serialize;
 use super::config::{se3_from_t_xyz_q_xyzw, CameraEntry, ConfigError, RigConfig};
 use super::pcd::{self, PcdError};
 use super::poses::{self, PoseError};
-use crate::dataset::{self, png_rgb, DatasetError, DatasetWriter, NsFrame, Transforms};
+use crate::dataset::{self, png_rgb, DatasetError, DatasetWriter, Transforms};
 use crate::geometry::{Se3, Trajectory};
 use crate::gpu::{Gpu, GpuError};
-use crate::lidar::{images, normals, products};
+use crate::lidar::{normals, products};
 use crate::pointcloud::{read_ply, write_ply_bytes, PointCloud};
 use crate::rig::{Rig, RigCamera};
 
@@ -405,15 +405,7 @@ pub async fn import_spires(
     }
     w.write("calib/rig.json", json(&rig).as_bytes())?;
     let n_images = frames.len();
-    let (train, val): (Vec<&NsFrame>, Vec<&NsFrame>) = frames
-        .iter()
-        .partition(|f| f.keyframe.unwrap_or(0) % 10 != 5);
-    let transforms = Transforms {
-        train_filenames: train.iter().map(|f| f.file_path.clone()).collect(),
-        val_filenames: val.iter().map(|f| f.file_path.clone()).collect(),
-        frames,
-        depth_unit_scale_factor: Some(1.0 / images::DEPTH_SCALE as f64),
-    };
+    let transforms = products::transforms(frames, products::every_tenth_keyframe);
     w.write("transforms.json", json(&transforms).as_bytes())?;
     let summary = SpiresSummary {
         path: out.to_path_buf(),

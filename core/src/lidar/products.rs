@@ -6,7 +6,9 @@
 use glam::DVec3;
 
 use super::{images, normals, project, sky};
-use crate::dataset::{png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, NsFrame};
+use crate::dataset::{
+    png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, NsFrame, Transforms,
+};
 use crate::geometry::Se3;
 use crate::gpu::{Gpu, GpuError};
 use crate::rig::RigCamera;
@@ -123,4 +125,27 @@ pub fn write_camera(
     f.keyframe = Some(k);
     f.time = Some(time);
     Ok(f)
+}
+
+/// The hold-out rule of our datasets: every keyframe k with k mod 10 = 5 (all its cameras) is a novel view.
+pub fn every_tenth_keyframe(f: &NsFrame) -> bool {
+    f.keyframe.unwrap_or(0) % 10 == 5
+}
+
+/// `transforms.json` of `frames` (as [`write_camera`] made them) with the train/val split `held_out`.
+pub fn transforms(frames: Vec<NsFrame>, held_out: impl Fn(&NsFrame) -> bool) -> Transforms {
+    let (mut train, mut val) = (Vec::new(), Vec::new());
+    for f in &frames {
+        if held_out(f) {
+            val.push(f.file_path.clone());
+        } else {
+            train.push(f.file_path.clone());
+        }
+    }
+    Transforms {
+        frames,
+        depth_unit_scale_factor: Some(1.0 / images::DEPTH_SCALE as f64),
+        train_filenames: train,
+        val_filenames: val,
+    }
 }

@@ -12,9 +12,7 @@ use super::raycast::{Scene, Shape, GROUND};
 use super::sensors::{render_camera, simulate_sweep, LidarNoise, RenderOptions, Sweep};
 use super::world::{Label, World};
 use super::Preset;
-use crate::dataset::{
-    self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, Transforms,
-};
+use crate::dataset::{self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter};
 use crate::eval::occupancy::OccupancyGrid;
 use crate::geometry::{Se3, Trajectory};
 use crate::gpu::{Gpu, GpuError};
@@ -421,20 +419,7 @@ pub async fn generate_recording(
     o.write("calib/lidar.json", json(&preset.lidar).as_bytes())?;
     let n_frames = frames.len();
     // Hold out every 10th keyframe (all its cameras) for novel-view evaluation.
-    let (mut train, mut val) = (Vec::new(), Vec::new());
-    for f in &frames {
-        if f.keyframe.unwrap_or(0) % 10 == 5 {
-            val.push(f.file_path.clone());
-        } else {
-            train.push(f.file_path.clone());
-        }
-    }
-    let transforms = Transforms {
-        frames,
-        depth_unit_scale_factor: Some(1.0 / images::DEPTH_SCALE as f64),
-        train_filenames: train,
-        val_filenames: val,
-    };
+    let transforms = products::transforms(frames, products::every_tenth_keyframe);
     o.write("transforms.json", json(&transforms).as_bytes())?;
     let labels = Label::ALL.iter().map(|l| (*l as u8, l.name())).collect();
     let encodings = BTreeMap::from([
