@@ -18,6 +18,9 @@ export CARGO_TARGET_DIR="${SILVR_FUZZ_TARGET_DIR:-$PWD/fuzz/target}"
 unset RUSTC_WORKSPACE_WRAPPER CLIPPY_ARGS
 for t in "${targets[@]}"; do
   mkdir -p "fuzz/corpus/$t"
+  # A build failure is not a finding: report it as such, before any fuzzing starts.
+  cargo fuzz build --fuzz-dir fuzz -s none --debug-assertions "$t" >"fuzz/corpus/$t.build.log" 2>&1 \
+    || { echo "[fuzz] $t: the target does not build (fuzz/corpus/$t.build.log)"; exit 2; }
   echo "[fuzz] $t for ${secs} s"
   start=$(date +%s)
   log="fuzz/corpus/$t.log"
