@@ -402,21 +402,7 @@ pub fn read_frames(path: &Path) -> Result<FrameList, DatasetError> {
         .get("frames")
         .and_then(Value::as_array)
         .ok_or_else(|| fmt_err(path, "no \"frames\" array"))?;
-    let shared = [
-        "fl_x",
-        "fl_y",
-        "cx",
-        "cy",
-        "w",
-        "h",
-        "camera_model",
-        "k1",
-        "k2",
-        "k3",
-        "k4",
-        "p1",
-        "p2",
-    ];
+    let shared = SHARED_INTRINSICS;
     let mut out = Vec::with_capacity(frames.len());
     for (i, f) in frames.iter().enumerate() {
         let mut f = f.clone();
@@ -453,6 +439,23 @@ pub fn read_frames(path: &Path) -> Result<FrameList, DatasetError> {
     };
     Ok((out, list("train_filenames"), list("val_filenames")))
 }
+
+/// Frame keys nerfstudio single-camera files give once at the top level instead of per frame.
+pub const SHARED_INTRINSICS: [&str; 13] = [
+    "fl_x",
+    "fl_y",
+    "cx",
+    "cy",
+    "w",
+    "h",
+    "camera_model",
+    "k1",
+    "k2",
+    "k3",
+    "k4",
+    "p1",
+    "p2",
+];
 
 /// nerfstudio `transforms.json` with per-frame intrinsics.
 #[derive(Clone, Debug, Serialize, Deserialize)]

@@ -482,21 +482,7 @@ mod tests {
             let mut v = serde_json::to_value(&f).unwrap();
             let o = v.as_object_mut().unwrap();
             // Intrinsics at the top level, as nerfstudio writes single-camera files.
-            for k in [
-                "fl_x",
-                "fl_y",
-                "cx",
-                "cy",
-                "w",
-                "h",
-                "camera_model",
-                "k1",
-                "k2",
-                "k3",
-                "k4",
-                "p1",
-                "p2",
-            ] {
+            for k in dataset::SHARED_INTRINSICS {
                 o.remove(k);
             }
             o.insert("depth_file_path".into(), format!("depth/{i}.png").into());

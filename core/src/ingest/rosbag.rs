@@ -283,21 +283,15 @@ pub async fn ingest_bag(
                 }
                 Err(e) => drop_count(&mut ix.dropped, format!("{topic}: bad PointCloud2 ({e})")),
             },
-            RosMessage::Image(img) if cam_of_topic.contains_key(topic.as_str()) => {
+            RosMessage::Image(ros::Image { header, .. })
+            | RosMessage::CompressedImage(ros::CompressedImage { header, .. })
+                if cam_of_topic.contains_key(topic.as_str()) =>
+            {
                 let c = cam_of_topic[topic.as_str()];
-                ix.image_frames[c].get_or_insert_with(|| img.header.frame_id.clone());
+                ix.image_frames[c].get_or_insert_with(|| header.frame_id.clone());
                 ix.images[c].push(ImageRef {
                     index: msg.index,
-                    time: secs(img.header.stamp),
-                });
-                used = true;
-            }
-            RosMessage::CompressedImage(img) if cam_of_topic.contains_key(topic.as_str()) => {
-                let c = cam_of_topic[topic.as_str()];
-                ix.image_frames[c].get_or_insert_with(|| img.header.frame_id.clone());
-                ix.images[c].push(ImageRef {
-                    index: msg.index,
-                    time: secs(img.header.stamp),
+                    time: secs(header.stamp),
                 });
                 used = true;
             }
