@@ -173,6 +173,22 @@ enum Command {
         seed: u64,
         #[arg(long, default_value = "silvr-demo")]
         out: PathBuf,
+        /// Training steps of each radiance field (default: 300 for `ci`, 5000 for `default`).
+        #[arg(long)]
+        steps: Option<u32>,
+        /// Model size, nerfacto or small (default: small for `ci`, nerfacto for `default`).
+        #[arg(long)]
+        model: Option<String>,
+        /// Rays per training batch (default: 1024 for `ci`, 4096 for `default`).
+        #[arg(long)]
+        rays: Option<usize>,
+        /// Train, render and score the held-out views at 1/N of the image resolution.
+        #[arg(long, default_value_t = 1)]
+        downscale: u32,
+        /// Keep OUT/dataset when an earlier run generated it from the same preset and seed (the
+        /// `default` world takes minutes to generate) instead of generating it again.
+        #[arg(long)]
+        reuse_dataset: bool,
     },
 }
 
@@ -225,6 +241,7 @@ fn uncertainty_cmd(c: UncertaintyCmd) -> Result<()> {
 }
 
 fn main() {
+    restore_sigpipe();
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
     let cli = Cli::parse();
     let result = match cli.command {
@@ -294,7 +311,27 @@ fn main() {
         })
         .map(|_| ()),
         Command::Uncertainty(c) => uncertainty_cmd(c),
-        Command::Demo { preset, seed, out } => demo(preset.as_deref(), seed, &out),
+        Command::Demo {
+            preset,
+            seed,
+            out,
+            steps,
+            model,
+            rays,
+            downscale,
+            reuse_dataset,
+        } => demo(
+            preset.as_deref(),
+            seed,
+            &out,
+            &DemoTraining {
+                steps,
+                model,
+                rays,
+                downscale,
+            },
+            reuse_dataset,
+        ),
         Command::BenchTrain {
             dataset,
             mode,
@@ -520,7 +557,42 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     silvr_core::dataset::write_atomic(path, bytes).map_err(Into::into)
 }
 
-fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
+/// Rust ignores SIGPIPE, so `println!` into a closed pipe (`silvr ingest --info | head`) panics; a
+/// command-line tool should end quietly like any Unix filter instead.
+fn restore_sigpipe() {
+    #[cfg(unix)]
+    // SAFETY: called first thing in main, before any thread exists; SIG_DFL is a valid disposition.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
+/// `silvr demo`'s training overrides (each `None` takes the preset's value from [`demo_training`]).
+struct DemoTraining {
+    steps: Option<u32>,
+    model: Option<String>,
+    rays: Option<usize>,
+    downscale: u32,
+}
+
+/// Whether `dataset` was generated from exactly `preset` (its manifest records the preset).
+fn generated_from(dataset: &Path, preset: &Preset) -> bool {
+    let Ok(bytes) = std::fs::read(dataset.join("manifest.json")) else {
+        return false;
+    };
+    let Ok(manifest) = serde_json::from_slice::<serde_json::Value>(&bytes) else {
+        return false;
+    };
+    serde_json::to_value(preset).is_ok_and(|p| manifest["preset"] == p)
+}
+
+fn demo(
+    preset: Option<&str>,
+    seed: u64,
+    out: &Path,
+    overrides: &DemoTraining,
+    reuse_dataset: bool,
+) -> Result<()> {
     let total = Instant::now();
     let gpu = open_gpu()?;
     let name = preset.unwrap_or(if gpu.report().software {
@@ -536,7 +608,14 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let dataset = out.join("dataset");
     let t = Instant::now();
-    synth_with(&gpu, &preset, &dataset, true)?;
+    if reuse_dataset && generated_from(&dataset, &preset) {
+        eprintln!(
+            "[demo] reusing {} (same preset and seed)",
+            dataset.display()
+        );
+    } else {
+        synth_with(&gpu, &preset, &dataset, true)?;
+    }
     let synth_s = t.elapsed().as_secs_f64();
 
     // Lidar-only baseline: the deskewed sweeps in the world frame.
@@ -551,6 +630,9 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
 
     // The two radiance fields: vision-only (nerfacto) and lidar-visual (SiLVR), same model and steps.
     let (steps, model, rays) = demo_training(name);
+    let steps = overrides.steps.unwrap_or(steps);
+    let model = overrides.model.as_deref().unwrap_or(model);
+    let rays = overrides.rays.unwrap_or(rays);
     let mut methods = serde_json::json!({ "lidar_only": report_json(&ev.report) });
     let mut rows = vec![("lidar_only".to_string(), ev.report.clone())];
     let mut uncertainty_block = None;
@@ -574,9 +656,9 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
             resume: None,
             checkpoint_every: 0,
             backend: "auto".into(),
-            downscale: 1,
+            downscale: overrides.downscale,
             seed,
-            export_rays: 60_000,
+            export_rays: demo_export_rays(name),
             quiet: true,
             // The demo reports PSNR/SSIM; normal renders are `silvr train`'s.
             view_normals: false,
@@ -617,6 +699,7 @@ fn demo(preset: Option<&str>, seed: u64, out: &Path) -> Result<()> {
             "steps": summary.steps,
             "rays_per_batch": rays,
             "model": model,
+            "downscale": overrides.downscale,
             "backend": summary.backend,
             "adapter": summary.adapter,
         });
@@ -678,6 +761,15 @@ fn demo_training(preset: &str) -> (u32, &'static str, usize) {
     match preset {
         "ci" => (300, "small", 1024),
         _ => (5000, "nerfacto", 4096),
+    }
+}
+
+/// Training rays exported as points: nerfstudio's default million on the full loop, fewer on the short
+/// `ci` street (completeness there is dominated by what no camera saw).
+fn demo_export_rays(preset: &str) -> usize {
+    match preset {
+        "ci" => 60_000,
+        _ => 1_000_000,
     }
 }
 

@@ -1050,8 +1050,8 @@ fn synthetic_bag_ingests_to_the_generated_dataset() {
     assert_eq!(summary.keyframes, 4);
     assert_eq!(summary.images, 12);
     assert!(summary.dropped.is_empty(), "{:?}", summary.dropped);
-    // Estimated from the clouds, not given: the ci lidar is 16 beams × 360 columns.
-    assert_eq!((summary.lidar_beams, summary.lidar_columns), (16, 360));
+    // Estimated from the clouds, not given: the ci lidar is 32 beams × 360 columns.
+    assert_eq!((summary.lidar_beams, summary.lidar_columns), (32, 360));
     assert_eq!(
         summary.topics["/odometry"].used,
         summary.topics["/odometry"].messages

@@ -108,9 +108,10 @@ fn demo_ci_reports_lidar_vision_and_silvr_with_silvr_beating_vision() {
         assert!(out.join(method).join("points.ply").is_file());
     }
     let f = |method: &str, key: &str| m[method][key].as_f64().unwrap();
+    // Issue 4's check: lidar makes the geometry at least 3x more accurate (measured 4.5x on the ci world).
     assert!(
-        f("silvr", "accuracy_m") < f("vision_only", "accuracy_m"),
-        "SiLVR accuracy {} m is not better than vision-only {} m",
+        3.0 * f("silvr", "accuracy_m") <= f("vision_only", "accuracy_m"),
+        "SiLVR accuracy {} m is not 3x better than vision-only {} m",
         f("silvr", "accuracy_m"),
         f("vision_only", "accuracy_m")
     );
@@ -121,7 +122,7 @@ fn demo_ci_reports_lidar_vision_and_silvr_with_silvr_beating_vision() {
         f("vision_only", "fscore_10cm")
     );
     assert!(
-        f("silvr", "psnr") > 23.0,
+        f("silvr", "psnr") > 25.0,
         "SiLVR held-out PSNR {}",
         f("silvr", "psnr")
     );

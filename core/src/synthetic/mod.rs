@@ -44,8 +44,9 @@ pub struct Preset {
 }
 
 impl Preset {
-    /// Small and fast (seconds): 360x270 images, a 16-beam lidar, 20 keyframes over ~13 m of the south
-    /// street, which holds the white wall, the textureless road and the far tower in view.
+    /// Small and fast (seconds): 360x270 images, a 32-beam lidar with the QT64's field of view, 20 keyframes
+    /// over ~13 m of the south street, which holds the white wall, the textureless road and the far tower in
+    /// view.
     pub fn ci(seed: u64) -> Self {
         Self {
             name: "ci".into(),
@@ -53,7 +54,7 @@ impl Preset {
             world: WorldParams::default(),
             motion: MotionParams::default(),
             rig: Rig::oxford_spires_scaled(0.25),
-            lidar: LidarSpec::vlp16(),
+            lidar: LidarSpec::qt64_half(),
             keyframes: 20,
             keyframe_interval: 0.5,
             supersample: 2,

@@ -50,13 +50,15 @@ impl LidarSpec {
         }
     }
 
-    /// A 16-beam sensor for fast CI worlds: ±15°, 1° azimuth steps, 60 m.
-    pub fn vlp16() -> Self {
+    /// The ci world's lidar: every second ring of the QT64 (32 beams over ±52.1°) at 1° azimuth steps.
+    /// The field of view is the Spires rig's, so, as in the paper's data, the lidar sees the whole height of
+    /// the street the cameras see; only what is beyond its 60 m range (the far tower) is camera-only. (A
+    /// ±15° VLP-16 left the upper third of every side image camera-only, which is not the rig SiLVR
+    /// targets.)
+    pub fn qt64_half() -> Self {
         Self {
-            name: "vlp16".into(),
-            beams: 16,
-            elevation_min_deg: -15.0,
-            elevation_max_deg: 15.0,
+            name: "qt64-half".into(),
+            beams: 32,
             columns: 360,
             ..Self::qt64()
         }
