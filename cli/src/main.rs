@@ -160,6 +160,28 @@ enum Command {
         #[arg(long, default_value_t = 300.0)]
         max_seconds: f64,
     },
+    /// Proposal networks vs an Instant-NGP occupancy grid for placing the final samples: the same training
+    /// on the CPU reference with each; wall time, PSNR curve, held-out PSNR, geometry when GT is present.
+    BenchSampler {
+        dataset: PathBuf,
+        #[arg(long, default_value = "silvr")]
+        mode: silvr_core::train::Mode,
+        #[arg(long, default_value = "small")]
+        model: String,
+        #[arg(long, default_value_t = 1024)]
+        rays: usize,
+        #[arg(long, default_value_t = 300)]
+        steps: u32,
+        /// Occupancy-grid cells per axis.
+        #[arg(long, default_value_t = 64)]
+        grid: usize,
+        /// Steps between occupancy-grid refreshes (Instant-NGP: 16).
+        #[arg(long, default_value_t = 16)]
+        update_every: u32,
+        /// Training rays exported for the geometry scores.
+        #[arg(long, default_value_t = 60_000)]
+        export_rays: usize,
+    },
     /// Epistemic uncertainty of a trained field (perturbation field + Laplace, colour and lidar depth):
     /// writes uncertainty.bin, the read-out as fields of points.ply, points_filtered.ply and an
     /// uncertainty image; with --gt also sparsification curves, AUSE and plots.
@@ -189,6 +211,10 @@ enum Command {
         /// `default` world takes minutes to generate) instead of generating it again.
         #[arg(long)]
         reuse_dataset: bool,
+        /// Batches of training rays of the uncertainty pass (default: 8 × 1024 rays for `ci`, 1000 × 4096
+        /// for `default`).
+        #[arg(long)]
+        uncertainty_batches: Option<usize>,
     },
 }
 
@@ -320,6 +346,7 @@ fn main() {
             rays,
             downscale,
             reuse_dataset,
+            uncertainty_batches,
         } => demo(
             preset.as_deref(),
             seed,
@@ -329,6 +356,7 @@ fn main() {
                 model,
                 rays,
                 downscale,
+                uncertainty_batches,
             },
             reuse_dataset,
         ),
@@ -350,6 +378,25 @@ fn main() {
             steps,
             target_psnr,
             max_seconds,
+        }),
+        Command::BenchSampler {
+            dataset,
+            mode,
+            model,
+            rays,
+            steps,
+            grid,
+            update_every,
+            export_rays,
+        } => train::bench_sampler(&train::SamplerBenchArgs {
+            dataset,
+            mode,
+            model,
+            rays,
+            steps,
+            grid,
+            update_every,
+            export_rays,
         }),
         Command::Bench { points, reps, json } => bench(points, reps, json),
     };
@@ -573,6 +620,7 @@ struct DemoTraining {
     model: Option<String>,
     rays: Option<usize>,
     downscale: u32,
+    uncertainty_batches: Option<usize>,
 }
 
 /// Whether `dataset` was generated from exactly `preset` (its manifest records the preset).
@@ -663,7 +711,11 @@ fn demo(
             // The demo reports PSNR/SSIM; normal renders are `silvr train`'s.
             view_normals: false,
             depth_sigma: None,
-            uncertainty: (mode == silvr_core::train::Mode::Silvr).then(|| demo_uncertainty(name)),
+            uncertainty: (mode == silvr_core::train::Mode::Silvr).then(|| {
+                let mut u = demo_uncertainty(name);
+                u.batches = overrides.uncertainty_batches.unwrap_or(u.batches);
+                u
+            }),
         })?;
         let points = summary
             .points

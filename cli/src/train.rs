@@ -459,3 +459,128 @@ pub fn crosscheck(dataset: &Path, model: &str, rays: usize) -> Result<serde_json
         "max_rel_grad_diff": worst,
     }))
 }
+
+pub struct SamplerBenchArgs {
+    pub dataset: PathBuf,
+    pub mode: Mode,
+    pub model: String,
+    pub rays: usize,
+    pub steps: u32,
+    /// Occupancy-grid cells per axis and steps between its refreshes.
+    pub grid: usize,
+    pub update_every: u32,
+    pub export_rays: usize,
+}
+
+/// `silvr bench-sampler`: the same training on the CPU reference with nerfacto's proposal networks and with
+/// an Instant-NGP occupancy grid placing the final samples (same final sample count, same batches, same
+/// losses with the proposal levels' share of depth and sky moved to the final level): wall time, training
+/// PSNR along the way, held-out PSNR and, where the dataset has ground truth, the exported cloud's geometry.
+pub fn bench_sampler(a: &SamplerBenchArgs) -> Result<()> {
+    use rand::SeedableRng;
+    use silvr_core::sampler::occupancy::OccupancyGrid;
+    use silvr_core::train::cpu::{self, Sampling};
+    let mut results = Vec::new();
+    for kind in ["proposal", "occupancy_grid"] {
+        let mut t = new_trainer(&a.dataset, a.mode, &a.model, a.rays, a.steps, Backend::Cpu)?;
+        let mut grid = (kind == "occupancy_grid").then(|| OccupancyGrid::new(a.grid));
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(0x0CC);
+        let levels = t.model.sampler.proposal_samples.len() as f32 + 1.0;
+        let t0 = Instant::now();
+        let mut grid_s = 0.0;
+        let mut curve = Vec::new();
+        while t.step < a.steps {
+            let batch = t.batch(t.step);
+            let mut sch = t.schedule(t.step);
+            if let Some(g) = grid.as_mut() {
+                if t.step % a.update_every.max(1) == 0 {
+                    let tg = Instant::now();
+                    cpu::update_occupancy(&t.model, &t.params, g, &mut rng, 0.95)?;
+                    grid_s += tg.elapsed().as_secs_f64();
+                }
+                // No proposal levels: the final level carries all of the depth and sky weight.
+                sch.losses.depth *= levels;
+                sch.losses.sky *= levels;
+            }
+            let sampling = grid
+                .as_ref()
+                .map_or(Sampling::Proposal, Sampling::Occupancy);
+            let (grads, stats) = cpu::train_step_with(sampling, &t.model, &t.params, &batch, &sch)?;
+            let lr = t.config.adam.lr_at(t.step);
+            t.adam
+                .update(&t.config.adam, lr, &mut t.params.tensors, &grads);
+            t.step += 1;
+            t.history.push(stats);
+            if t.step % 50 == 0 || t.step == a.steps {
+                let h = &t.history[t.history.len().saturating_sub(20)..];
+                let mse = h.iter().map(|s| s.rgb_mse).sum::<f64>() / h.len() as f64;
+                let mut c = serde_json::json!({
+                    "step": t.step,
+                    "s": t0.elapsed().as_secs_f64(),
+                    "train_psnr": -10.0 * mse.max(1e-12).log10(),
+                });
+                if let Some(g) = &grid {
+                    c["occupied_fraction"] = g.occupied_fraction().into();
+                }
+                curve.push(c);
+            }
+        }
+        let train_s = t0.elapsed().as_secs_f64();
+        let sampling = grid
+            .as_ref()
+            .map_or(Sampling::Proposal, Sampling::Occupancy);
+        let mut psnr = Vec::new();
+        for &i in &t.data.val.clone() {
+            let (rays, valid) = t.view_rays(i);
+            let out = cpu::render_rays_with(sampling, &t.model, &t.params, &rays, false, 4096)?;
+            psnr.push(t.score_view(i, &t.view_from(i, valid, &out))?.psnr);
+        }
+        let mut entry = serde_json::json!({
+            "sampler": kind,
+            "steps": t.step,
+            "train_s": train_s,
+            "grid_update_s": grid_s,
+            "heldout_psnr": mean(psnr.iter().copied()),
+            "curve": curve,
+        });
+        if let Some(g) = &grid {
+            entry["grid_cells"] = g.res.into();
+            entry["occupied_fraction"] = g.occupied_fraction().into();
+        }
+        if a.dataset.join("gt/cloud.ply").is_file() && a.export_rays > 0 {
+            let rays = t.export_rays(a.export_rays, 0xE0);
+            let out = cpu::render_rays_with(sampling, &t.model, &t.params, &rays, false, 4096)?;
+            let cloud = silvr_core::train::export::points_from(&t.data.frame, &rays, &out);
+            let tmp = tempfile_path(kind);
+            silvr_core::pointcloud::write_ply(&tmp, &cloud)?;
+            let ev = silvr_core::eval::evaluate_files_full(
+                &tmp,
+                &a.dataset,
+                &silvr_core::eval::GeometryOptions::default(),
+            );
+            let _ = std::fs::remove_file(&tmp);
+            let r = ev?.report;
+            entry["accuracy_m"] = r.accuracy_m.into();
+            entry["fscore_10cm"] = r.per_threshold.get("fscore_10cm").copied().into();
+        }
+        eprintln!("[bench-sampler] {kind}: {entry}");
+        results.push(entry);
+    }
+    let v = serde_json::json!({
+        "dataset": a.dataset,
+        "mode": a.mode.name(),
+        "model": a.model,
+        "rays_per_batch": a.rays,
+        "backend": "cpu (the occupancy grid exists only in the CPU reference)",
+        "results": results,
+    });
+    println!("{}", serde_json::to_string_pretty(&v)?);
+    Ok(())
+}
+
+fn tempfile_path(kind: &str) -> PathBuf {
+    std::env::temp_dir().join(format!(
+        "silvr-bench-sampler-{}-{kind}.ply",
+        std::process::id()
+    ))
+}

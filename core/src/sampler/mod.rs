@@ -9,6 +9,8 @@
 //! on one ray (slices of edges and weights), so the batch loop, the rayon fallback and the one-thread-per-ray
 //! WGSL kernels (`shaders/sampler.wgsl`) share one definition.
 
+pub mod occupancy;
+
 use serde::{Deserialize, Serialize};
 
 /// Proposal-sampling configuration (nerfacto's defaults).

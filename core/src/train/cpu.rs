@@ -14,6 +14,7 @@ use crate::gpu::GpuError;
 use crate::render::{
     self, Background, Interval, LossConfig, RayBatch, RayOutput, RayTarget, Sample,
 };
+use crate::sampler::occupancy::OccupancyGrid;
 use crate::sampler::{self, Spacing};
 
 /// One ray in the scene frame: unit direction, appearance row (`u32::MAX` = the mean embedding).
@@ -102,6 +103,17 @@ pub(crate) fn mids(rays: &[TrainRay], t: &[f32], n: usize) -> Vec<[f32; 3]> {
         .collect()
 }
 
+/// How the final samples are placed: nerfacto's proposal networks (the product), or an Instant-NGP
+/// occupancy grid (CPU only, for the comparison `silvr bench-sampler` records).
+#[derive(Clone, Copy, Debug)]
+pub enum Sampling<'a> {
+    Proposal,
+    Occupancy(&'a OccupancyGrid),
+}
+
+/// Candidate bins per ray checked against the occupancy grid.
+pub const OCCUPANCY_CANDIDATES: usize = 256;
+
 /// The proposal levels and the final level's edges (normalised s, distance t).
 pub(crate) type Proposed = (Vec<Level>, Vec<f32>, Vec<f32>);
 
@@ -177,6 +189,64 @@ pub(crate) fn propose(
     }
     let t = edges_to_t(&sp, &s);
     Ok((levels, s, t))
+}
+
+/// [`propose`], or the occupancy grid's final edges (no proposal levels).
+pub(crate) fn propose_with(
+    sampling: Sampling,
+    cfg: &ModelConfig,
+    params: &Params,
+    rays: &[TrainRay],
+    jitter: Option<&[f32]>,
+    anneal: f32,
+    keep: bool,
+) -> Result<Proposed, GpuError> {
+    let Sampling::Occupancy(grid) = sampling else {
+        return propose(cfg, params, rays, jitter, anneal, keep);
+    };
+    let sc = &cfg.sampler;
+    let sp = Spacing::new(sc.near, sc.far);
+    let nl = sc.proposal_samples.len() + 1;
+    let n = sc.samples;
+    let level = grid.level();
+    let mut s = vec![0.0f32; rays.len() * (n + 1)];
+    s.par_chunks_mut(n + 1).enumerate().for_each(|(r, out)| {
+        grid.ray_edges(
+            level,
+            rays[r].origin,
+            rays[r].dir,
+            &sp,
+            OCCUPANCY_CANDIDATES,
+            sc.histogram_padding,
+            jitter.map(|j| j[r * nl + nl - 1]),
+            out,
+        )
+    });
+    let t = edges_to_t(&sp, &s);
+    Ok((Vec::new(), s, t))
+}
+
+/// Refreshes an occupancy grid from the radiance field's density at one random point per cell.
+pub fn update_occupancy(
+    cfg: &ModelConfig,
+    params: &Params,
+    grid: &mut OccupancyGrid,
+    rng: &mut impl rand::Rng,
+    decay: f32,
+) -> Result<(), GpuError> {
+    let pts = grid.cell_points(rng);
+    let ev = density_forward_unit_cpu(
+        &cfg.field.grid,
+        &cfg.density_mlp(),
+        &params.tensors[GRID],
+        &params.tensors[DENSITY],
+        pts,
+    )?;
+    let fresh: Vec<f32> = (0..ev.unit.len())
+        .map(|i| density_of(ev.logit(i)).0)
+        .collect();
+    grid.update(&fresh, decay);
+    Ok(())
 }
 
 /// The radiance field at the final samples: densities, colours, and (for the first `normal_rays` rays)
@@ -298,6 +368,18 @@ pub fn train_step(
     batch: &Batch,
     sch: &StepSchedule,
 ) -> Result<(Vec<Vec<f32>>, StepStats), GpuError> {
+    train_step_with(Sampling::Proposal, cfg, params, batch, sch)
+}
+
+/// [`train_step`] with the final samples placed by `sampling` (the proposal fields get zero gradients
+/// under an occupancy grid).
+pub fn train_step_with(
+    sampling: Sampling,
+    cfg: &ModelConfig,
+    params: &Params,
+    batch: &Batch,
+    sch: &StepSchedule,
+) -> Result<(Vec<Vec<f32>>, StepStats), GpuError> {
     let r = batch.rays.len();
     let nl = cfg.sampler.proposal_samples.len() + 1;
     if r == 0 || batch.targets.len() != r || batch.jitter.len() != r * nl {
@@ -309,7 +391,8 @@ pub fn train_step(
         )));
     }
     let normal_rays = if sch.normals { batch.normal_rays } else { 0 };
-    let (levels, s_final, t_final) = propose(
+    let (levels, s_final, t_final) = propose_with(
+        sampling,
         cfg,
         params,
         &batch.rays,
@@ -472,6 +555,9 @@ pub fn train_step(
         grads.push(gg);
         grads.push(gm);
     }
+    for t in &params.tensors[grads.len()..] {
+        grads.push(vec![0.0; t.len()]);
+    }
     if !stats.loss.is_finite() {
         return Err(GpuError::InvalidInput(format!(
             "training step {}: the loss became non-finite ({stats:?})",
@@ -507,11 +593,23 @@ pub fn render_rays(
     normals: bool,
     chunk: usize,
 ) -> Result<Vec<RenderedRay>, GpuError> {
+    render_rays_with(Sampling::Proposal, cfg, params, rays, normals, chunk)
+}
+
+/// [`render_rays`] with the final samples placed by `sampling`.
+pub fn render_rays_with(
+    sampling: Sampling,
+    cfg: &ModelConfig,
+    params: &Params,
+    rays: &[TrainRay],
+    normals: bool,
+    chunk: usize,
+) -> Result<Vec<RenderedRay>, GpuError> {
     let n = cfg.sampler.samples;
     let mut out = Vec::with_capacity(rays.len());
     for part in rays.chunks(chunk.max(1)) {
         let r = part.len();
-        let (_, _, t) = propose(cfg, params, part, None, 1.0, false)?;
+        let (_, _, t) = propose_with(sampling, cfg, params, part, None, 1.0, false)?;
         let sh = shade(cfg, params, part, &t, if normals { r } else { 0 })?;
         let ivs = intervals(&t, r, n);
         let rb = RayBatch {
@@ -566,6 +664,17 @@ mod tests {
     /// stops its gradient into the final weights, which differences would see.
     #[test]
     fn step_gradient_matches_finite_differences() {
+        check_step_gradient(false);
+    }
+
+    /// The same with an occupancy grid (refreshed from the field) placing the samples: the field's
+    /// gradients still match differences, and the unused proposal fields get exact zeros.
+    #[test]
+    fn occupancy_grid_step_gradient_matches_finite_differences() {
+        check_step_gradient(true);
+    }
+
+    fn check_step_gradient(occupancy: bool) {
         // The tiny model with nerfacto's proposal grid depth (the shared tiny model uses 3 levels).
         let mut cfg = ModelConfig::tiny();
         for (p, d) in cfg
@@ -619,8 +728,33 @@ mod tests {
             distortion: 0.01,
             normals: true,
         };
-        let (grads, _) = train_step(&cfg, &params, &batch, &sch).unwrap();
-        let loss = |p: &Params| train_step(&cfg, p, &batch, &sch).unwrap().1.loss;
+        let mut grid = OccupancyGrid::new(16);
+        update_occupancy(&cfg, &params, &mut grid, &mut rng, 0.95).unwrap();
+        // The random field is dense everywhere; mark only its denser half occupied.
+        let mut d = grid.density.clone();
+        d.sort_by(f32::total_cmp);
+        grid.threshold = d[d.len() / 2];
+        let occupied = grid.occupied_fraction();
+        assert!(occupied > 0.0 && occupied < 1.0, "occupied {occupied}");
+        let sampling = if occupancy {
+            Sampling::Occupancy(&grid)
+        } else {
+            Sampling::Proposal
+        };
+        let (grads, _) = train_step_with(sampling, &cfg, &params, &batch, &sch).unwrap();
+        assert_eq!(grads.len(), params.tensors.len());
+        for (g, t) in grads.iter().zip(&params.tensors) {
+            assert_eq!(g.len(), t.len());
+        }
+        if occupancy {
+            assert!(grads[PROPOSAL..].iter().flatten().all(|&g| g == 0.0));
+        }
+        let loss = |p: &Params| {
+            train_step_with(sampling, &cfg, p, &batch, &sch)
+                .unwrap()
+                .1
+                .loss
+        };
         for tensor in [GRID, DENSITY, COLOUR, APPEARANCE] {
             // The entries with the largest gradients (the rest are below f32 differencing noise); a
             // small step because ReLU kinks and the hash cells are only piecewise smooth.

@@ -77,6 +77,11 @@ impl Trainer {
     pub async fn render_view(&mut self, i: usize, normals: bool) -> Result<ViewRender, GpuError> {
         let (rays, valid) = self.view_rays(i);
         let out = self.render(&rays, normals).await?;
+        Ok(self.view_from(i, valid, &out))
+    }
+
+    /// Image `i`'s view from its rendered rays (in [`Trainer::view_rays`] order).
+    pub fn view_from(&self, i: usize, valid: Vec<bool>, out: &[RenderedRay]) -> ViewRender {
         let scale = self.data.frame.scale as f32;
         let im = &self.data.images[i];
         let mut v = ViewRender {
@@ -101,7 +106,7 @@ impl Trainer {
                 v.normals.push([0.0; 3]);
             }
         }
-        Ok(v)
+        v
     }
 
     /// PSNR and SSIM of image `i`'s render against its photo, over the pixels the camera has rays for.
@@ -155,6 +160,17 @@ impl Trainer {
         seed: u64,
         normals: bool,
     ) -> Result<PointCloud, GpuError> {
+        let batch = self.export_rays(rays, seed);
+        let out = self.render(&batch, normals).await?;
+        let mut cloud = points_from(&self.data.frame, &batch, &out);
+        if !normals {
+            cloud.normals = None;
+        }
+        Ok(cloud)
+    }
+
+    /// The export's rays: `rays` random training pixels drawn from `seed`.
+    pub fn export_rays(&self, rays: usize, seed: u64) -> Vec<TrainRay> {
         let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed);
         let mut batch = Vec::with_capacity(rays);
         let mut tries = 0;
@@ -174,12 +190,7 @@ impl Trainer {
                 });
             }
         }
-        let out = self.render(&batch, normals).await?;
-        let mut cloud = points_from(&self.data.frame, &batch, &out);
-        if !normals {
-            cloud.normals = None;
-        }
-        Ok(cloud)
+        batch
     }
 }
 
