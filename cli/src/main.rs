@@ -109,7 +109,7 @@ enum Command {
         /// Rays per batch.
         #[arg(long, default_value_t = 4096)]
         rays: usize,
-        /// Model sizes: nerfacto or small.
+        /// Model sizes: nerfacto, medium (2^18 table, fewer samples) or small.
         #[arg(long, default_value = "nerfacto")]
         model: String,
         /// Output folder: checkpoint, train.json, renders/, points.ply.
@@ -198,7 +198,7 @@ enum Command {
         /// Training steps of each radiance field (default: 300 for `ci`, 5000 for `default`).
         #[arg(long)]
         steps: Option<u32>,
-        /// Model size, nerfacto or small (default: small for `ci`, nerfacto for `default`).
+        /// Model size, nerfacto, medium or small (default: small for `ci`, nerfacto for `default`).
         #[arg(long)]
         model: Option<String>,
         /// Rays per training batch (default: 1024 for `ci`, 4096 for `default`).

@@ -28,7 +28,17 @@ pub fn model_preset(name: &str, images: usize) -> Result<ModelConfig> {
                 p.grid.log2_table_size = 15;
             }
         }
-        o => bail!("unknown model size {o:?} (nerfacto, small)"),
+        "medium" => {
+            // nerfacto's finest resolution with a 2^18 table and the small model's sample counts: the
+            // default world on a CPU (BENCHMARKS.md).
+            m.field.grid.log2_table_size = 18;
+            m.sampler.proposal_samples = vec![64, 32];
+            m.sampler.samples = 24;
+            for p in &mut m.proposals {
+                p.grid.log2_table_size = 16;
+            }
+        }
+        o => bail!("unknown model size {o:?} (nerfacto, medium, small)"),
     }
     Ok(m)
 }
