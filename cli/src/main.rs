@@ -162,26 +162,7 @@ enum Command {
     },
     /// Proposal networks vs an Instant-NGP occupancy grid for placing the final samples: the same training
     /// on the CPU reference with each; wall time, PSNR curve, held-out PSNR, geometry when GT is present.
-    BenchSampler {
-        dataset: PathBuf,
-        #[arg(long, default_value = "silvr")]
-        mode: silvr_core::train::Mode,
-        #[arg(long, default_value = "small")]
-        model: String,
-        #[arg(long, default_value_t = 1024)]
-        rays: usize,
-        #[arg(long, default_value_t = 300)]
-        steps: u32,
-        /// Occupancy-grid cells per axis.
-        #[arg(long, default_value_t = 64)]
-        grid: usize,
-        /// Steps between occupancy-grid refreshes (Instant-NGP: 16).
-        #[arg(long, default_value_t = 16)]
-        update_every: u32,
-        /// Training rays exported for the geometry scores.
-        #[arg(long, default_value_t = 60_000)]
-        export_rays: usize,
-    },
+    BenchSampler(train::SamplerBenchArgs),
     /// Epistemic uncertainty of a trained field (perturbation field + Laplace, colour and lidar depth):
     /// writes uncertainty.bin, the read-out as fields of points.ply, points_filtered.ply and an
     /// uncertainty image; with --gt also sparsification curves, AUSE and plots.
@@ -379,25 +360,7 @@ fn main() {
             target_psnr,
             max_seconds,
         }),
-        Command::BenchSampler {
-            dataset,
-            mode,
-            model,
-            rays,
-            steps,
-            grid,
-            update_every,
-            export_rays,
-        } => train::bench_sampler(&train::SamplerBenchArgs {
-            dataset,
-            mode,
-            model,
-            rays,
-            steps,
-            grid,
-            update_every,
-            export_rays,
-        }),
+        Command::BenchSampler(a) => train::bench_sampler(&a),
         Command::Bench { points, reps, json } => bench(points, reps, json),
     };
     if let Err(e) = result {

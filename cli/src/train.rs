@@ -470,15 +470,26 @@ pub fn crosscheck(dataset: &Path, model: &str, rays: usize) -> Result<serde_json
     }))
 }
 
+#[derive(clap::Args)]
 pub struct SamplerBenchArgs {
+    /// Dataset folder (e.g. from `silvr synth`).
     pub dataset: PathBuf,
+    #[arg(long, default_value = "silvr")]
     pub mode: Mode,
+    #[arg(long, default_value = "small")]
     pub model: String,
+    #[arg(long, default_value_t = 1024)]
     pub rays: usize,
+    #[arg(long, default_value_t = 300)]
     pub steps: u32,
-    /// Occupancy-grid cells per axis and steps between its refreshes.
+    /// Occupancy-grid cells per axis.
+    #[arg(long, default_value_t = 64)]
     pub grid: usize,
+    /// Steps between occupancy-grid refreshes (Instant-NGP: 16).
+    #[arg(long, default_value_t = 16)]
     pub update_every: u32,
+    /// Training rays exported for the geometry scores.
+    #[arg(long, default_value_t = 60_000)]
     pub export_rays: usize,
 }
 

@@ -44,17 +44,15 @@ impl OccupancyGrid {
 
     /// The density level above which a cell counts as occupied now.
     pub fn level(&self) -> f32 {
-        let finite: Vec<f32> = self
+        let (sum, n) = self
             .density
             .iter()
-            .copied()
             .filter(|d| d.is_finite())
-            .collect();
-        if finite.is_empty() {
+            .fold((0.0f64, 0usize), |(s, n), &d| (s + d as f64, n + 1));
+        if n == 0 {
             return self.threshold;
         }
-        let mean = finite.iter().map(|&d| d as f64).sum::<f64>() / finite.len() as f64;
-        self.threshold.min(mean as f32)
+        self.threshold.min((sum / n as f64) as f32)
     }
 
     /// Fraction of cells occupied.
