@@ -896,3 +896,27 @@ fn bench(points: usize, reps: usize, json: bool) -> Result<()> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--reuse-dataset` keeps a dataset only when its manifest records exactly the preset asked for.
+    #[test]
+    fn a_dataset_is_reused_only_for_its_own_preset_and_seed() {
+        let dir = std::env::temp_dir().join(format!("silvr-reuse-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        assert!(!generated_from(&dir, &Preset::ci(1)), "no manifest");
+        let manifest = serde_json::json!({ "preset": Preset::ci(1), "files": {} });
+        std::fs::write(dir.join("manifest.json"), manifest.to_string()).unwrap();
+        assert!(generated_from(&dir, &Preset::ci(1)));
+        assert!(!generated_from(&dir, &Preset::ci(2)), "other seed");
+        assert!(
+            !generated_from(&dir, &Preset::default_preset(1)),
+            "other preset"
+        );
+        std::fs::write(dir.join("manifest.json"), b"{ not json").unwrap();
+        assert!(!generated_from(&dir, &Preset::ci(1)), "corrupt manifest");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
