@@ -124,6 +124,37 @@ impl DatasetWriter {
         Ok(())
     }
 
+    /// Writes `value` as pretty-printed JSON (dataset files hold plain data, which always serialises).
+    pub fn write_json(&self, rel: &str, value: &impl Serialize) -> Result<(), DatasetError> {
+        let text = serde_json::to_string_pretty(value).expect("plain data serialises");
+        self.write(rel, text.as_bytes())
+    }
+
+    /// The pose files of every dataset (TUM text): `poses/{base,lidar}_tum.txt` and `poses/<camera>_tum.txt`
+    /// at the keyframe `times`, and the trajectory they were taken from, `poses/odometry_lidar_tum.txt`.
+    pub fn write_poses(
+        &self,
+        times: &[f64],
+        base: &[Se3],
+        lidar: &[Se3],
+        cameras: &[(&str, &[Se3])],
+        odometry: &Trajectory,
+    ) -> Result<(), DatasetError> {
+        self.write("poses/base_tum.txt", tum_string(times, base).as_bytes())?;
+        self.write("poses/lidar_tum.txt", tum_string(times, lidar).as_bytes())?;
+        self.write(
+            "poses/odometry_lidar_tum.txt",
+            tum_string(odometry.stamps(), odometry.poses()).as_bytes(),
+        )?;
+        for (name, poses) in cameras {
+            self.write(
+                &format!("poses/{name}_tum.txt"),
+                tum_string(times, poses).as_bytes(),
+            )?;
+        }
+        Ok(())
+    }
+
     /// Every file written so far (dataset-relative path → bytes).
     pub fn files(&self) -> std::collections::BTreeMap<String, u64> {
         self.files.borrow().clone()

@@ -215,24 +215,14 @@ pub fn import_nerfstudio(
         train_filenames: new_train,
         val_filenames: new_val,
     };
-    w.write(
-        "transforms.json",
-        serde_json::to_string_pretty(&t)
-            .expect("plain data")
-            .as_bytes(),
-    )?;
+    w.write_json("transforms.json", &t)?;
     let manifest = serde_json::json!({
         "layout_version": dataset::LAYOUT_VERSION,
         "generator": "silvr-import-nerfstudio 1",
         "source": transforms.display().to_string(),
         "summary": &summary,
     });
-    w.write(
-        "manifest.json",
-        serde_json::to_string_pretty(&manifest)
-            .expect("plain data")
-            .as_bytes(),
-    )?;
+    w.write_json("manifest.json", &manifest)?;
     let path = w.commit()?;
     Ok(ImportSummary { path, ..summary })
 }
@@ -359,12 +349,7 @@ pub fn import_colmap(
         train_filenames: train,
         val_filenames: val,
     };
-    w.write(
-        "transforms.json",
-        serde_json::to_string_pretty(&t)
-            .expect("plain data")
-            .as_bytes(),
-    )?;
+    w.write_json("transforms.json", &t)?;
     let manifest = serde_json::json!({
         "layout_version": dataset::LAYOUT_VERSION,
         "generator": "silvr-import-colmap 1",
@@ -372,12 +357,7 @@ pub fn import_colmap(
         "images": images.display().to_string(),
         "summary": &summary,
     });
-    w.write(
-        "manifest.json",
-        serde_json::to_string_pretty(&manifest)
-            .expect("plain data")
-            .as_bytes(),
-    )?;
+    w.write_json("manifest.json", &manifest)?;
     let path = w.commit()?;
     Ok(ImportSummary { path, ..summary })
 }

@@ -406,12 +406,12 @@ pub async fn import_dgp(
         "poses/base_tum.txt",
         dataset::tum_string(&times, &base_poses).as_bytes(),
     )?;
-    w.write("calib/rig.json", json(&rig).as_bytes())?;
+    w.write_json("calib/rig.json", &rig)?;
     // A scene is a handful of samples: with three or more, the middle one of every camera is held out for
     // novel-view evaluation (an interpolation between its neighbours); otherwise every image trains.
     let held_out = |f: &NsFrame| total >= 3 && f.keyframe == Some(total / 2);
     let transforms = products::transforms(frames, held_out);
-    w.write("transforms.json", json(&transforms).as_bytes())?;
+    w.write_json("transforms.json", &transforms)?;
     let summary = DgpSummary {
         path: out.to_path_buf(),
         keyframes: total,
@@ -429,11 +429,7 @@ pub async fn import_dgp(
         "notes": "no per-point time in DGP sweeps: lidar/deskewed = lidar/raw; rings and columns from an angular grid",
         "files": w.files(),
     });
-    w.write("manifest.json", json(&manifest).as_bytes())?;
+    w.write_json("manifest.json", &manifest)?;
     let path = w.commit()?;
     Ok(DgpSummary { path, ..summary })
-}
-
-fn json(v: &impl Serialize) -> String {
-    serde_json::to_string_pretty(v).expect("plain data serialises")
 }

@@ -691,25 +691,14 @@ pub async fn ingest_bag(
     let times: Vec<f64> = order.iter().map(|&i| times[i]).collect();
     let records: Vec<KeyframeRecord> = order.iter().map(|&i| records[i].clone()).collect();
     frames.sort_by_key(|f| f.keyframe);
-    out.write(
-        "poses/base_tum.txt",
-        dataset::tum_string(&times, &base_poses).as_bytes(),
-    )?;
-    out.write(
-        "poses/lidar_tum.txt",
-        dataset::tum_string(&times, &lidar_poses).as_bytes(),
-    )?;
-    out.write(
-        "poses/odometry_lidar_tum.txt",
-        dataset::tum_string(trajectory.stamps(), trajectory.poses()).as_bytes(),
-    )?;
-    for (ci, c) in rig.cameras.iter().enumerate() {
-        out.write(
-            &format!("poses/{}_tum.txt", c.name),
-            dataset::tum_string(&times, &cam_poses[ci]).as_bytes(),
-        )?;
-    }
-    out.write("calib/rig.json", json(&rig).as_bytes())?;
+    let cameras: Vec<(&str, &[Se3])> = rig
+        .cameras
+        .iter()
+        .zip(&cam_poses)
+        .map(|(c, p)| (c.name.as_str(), p.as_slice()))
+        .collect();
+    out.write_poses(&times, &base_poses, &lidar_poses, &cameras, &trajectory)?;
+    out.write_json("calib/rig.json", &rig)?;
     let lidar = LidarCalib {
         topic: ing.lidar_topic.clone(),
         frame: lidar_frame.clone(),
@@ -717,10 +706,10 @@ pub async fn ingest_bag(
         columns,
         min_range: ing.min_range,
     };
-    out.write("calib/lidar.json", json(&lidar).as_bytes())?;
+    out.write_json("calib/lidar.json", &lidar)?;
     let n_images = frames.len();
     let transforms = products::transforms(frames, products::every_tenth_keyframe);
-    out.write("transforms.json", json(&transforms).as_bytes())?;
+    out.write_json("transforms.json", &transforms)?;
     let mut summary = IngestSummary {
         path: out.target.clone(),
         bag: file.clone(),
@@ -749,7 +738,7 @@ pub async fn ingest_bag(
         encodings: encodings(),
         files: out.files(),
     };
-    out.write("manifest.json", json(&manifest).as_bytes())?;
+    out.write_json("manifest.json", &manifest)?;
     summary.path = out.commit()?;
     Ok(summary)
 }
@@ -776,10 +765,6 @@ fn reader_decode(file: &str, msg: &super::mcap::BagMessage, e: ros::DecodeError)
         log_time: msg.log_time(),
         source: Box::new(e),
     })
-}
-
-fn json(v: &impl Serialize) -> String {
-    serde_json::to_string_pretty(v).expect("plain data serialises")
 }
 
 #[derive(Default)]

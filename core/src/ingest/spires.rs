@@ -385,28 +385,17 @@ pub async fn import_spires(
         base_poses.push(t_world_lidar * t_base_lidar.inverse());
     }
     progress(total, total);
-    w.write(
-        "poses/lidar_tum.txt",
-        dataset::tum_string(&times, &lidar_poses).as_bytes(),
-    )?;
-    w.write(
-        "poses/base_tum.txt",
-        dataset::tum_string(&times, &base_poses).as_bytes(),
-    )?;
-    w.write(
-        "poses/odometry_lidar_tum.txt",
-        dataset::tum_string(lidar_traj.stamps(), lidar_traj.poses()).as_bytes(),
-    )?;
-    for (ci, c) in rig.cameras.iter().enumerate() {
-        w.write(
-            &format!("poses/{}_tum.txt", c.name),
-            dataset::tum_string(&times, &cam_poses[ci]).as_bytes(),
-        )?;
-    }
-    w.write("calib/rig.json", json(&rig).as_bytes())?;
+    let cameras: Vec<(&str, &[Se3])> = rig
+        .cameras
+        .iter()
+        .zip(&cam_poses)
+        .map(|(c, p)| (c.name.as_str(), p.as_slice()))
+        .collect();
+    w.write_poses(&times, &base_poses, &lidar_poses, &cameras, &lidar_traj)?;
+    w.write_json("calib/rig.json", &rig)?;
     let n_images = frames.len();
     let transforms = products::transforms(frames, products::every_tenth_keyframe);
-    w.write("transforms.json", json(&transforms).as_bytes())?;
+    w.write_json("transforms.json", &transforms)?;
     let summary = SpiresSummary {
         path: out.to_path_buf(),
         keyframes: total,
@@ -421,13 +410,9 @@ pub async fn import_spires(
         "config": &cfg,
         "summary": &summary,
     });
-    w.write("manifest.json", json(&manifest).as_bytes())?;
+    w.write_json("manifest.json", &manifest)?;
     let path = w.commit()?;
     Ok(SpiresSummary { path, ..summary })
-}
-
-fn json(v: &impl Serialize) -> String {
-    serde_json::to_string_pretty(v).expect("plain data serialises")
 }
 
 /// Writes `dataset` in the Spires layout at `out` (which must not exist): `sensor.yaml` from

@@ -396,31 +396,18 @@ pub async fn generate_recording(
     });
 
     // Poses, calibration, transforms.json, manifest.
-    o.write(
-        "poses/base_tum.txt",
-        dataset::tum_string(&image_times, &base_poses).as_bytes(),
-    )?;
-    o.write(
-        "poses/lidar_tum.txt",
-        dataset::tum_string(&image_times, &lidar_poses).as_bytes(),
-    )?;
-    o.write(
-        "poses/odometry_lidar_tum.txt",
-        dataset::tum_string(odo.stamps(), odo.poses()).as_bytes(),
-    )?;
-    for (ci, cn) in cams.iter().enumerate() {
-        o.write(
-            &format!("poses/{cn}_tum.txt"),
-            dataset::tum_string(&image_times, &cam_poses[ci]).as_bytes(),
-        )?;
-    }
-    let json = |v: &dyn erased::Json| v.to_json();
-    o.write("calib/rig.json", json(&preset.rig).as_bytes())?;
-    o.write("calib/lidar.json", json(&preset.lidar).as_bytes())?;
+    let cameras: Vec<(&str, &[Se3])> = cams
+        .iter()
+        .zip(&cam_poses)
+        .map(|(&c, p)| (c, p.as_slice()))
+        .collect();
+    o.write_poses(&image_times, &base_poses, &lidar_poses, &cameras, &odo)?;
+    o.write_json("calib/rig.json", &preset.rig)?;
+    o.write_json("calib/lidar.json", &preset.lidar)?;
     let n_frames = frames.len();
     // Hold out every 10th keyframe (all its cameras) for novel-view evaluation.
     let transforms = products::transforms(frames, products::every_tenth_keyframe);
-    o.write("transforms.json", json(&transforms).as_bytes())?;
+    o.write_json("transforms.json", &transforms)?;
     let labels = Label::ALL.iter().map(|l| (*l as u8, l.name())).collect();
     let encodings = BTreeMap::from([
         ("images", "8-bit RGB PNG, display gamma 2.2"),
@@ -449,9 +436,7 @@ pub async fn generate_recording(
         encodings,
         files,
     };
-    let text =
-        serde_json::to_string_pretty(&manifest).map_err(|e| SynthError::Other(e.to_string()))?;
-    o.write("manifest.json", text.as_bytes())?;
+    o.write_json("manifest.json", &manifest)?;
     let n_files = o.files().len();
     if let Some(rec) = recorder {
         rec.finish().map_err(SynthError::Other)?;
@@ -465,18 +450,6 @@ pub async fn generate_recording(
         gt_points,
         files: n_files,
     })
-}
-
-mod erased {
-    /// Pretty JSON of anything serialisable (serialising plain data structs cannot fail).
-    pub trait Json {
-        fn to_json(&self) -> String;
-    }
-    impl<T: serde::Serialize> Json for T {
-        fn to_json(&self) -> String {
-            serde_json::to_string_pretty(self).expect("plain data serialises")
-        }
-    }
 }
 
 /// Samples every surface on a grid of `spacing`, keeping samples that `keep` accepts (observed space) and
