@@ -10,6 +10,7 @@ use silvr_core::eval::{self, GeometryOptions, GeometryReport};
 use silvr_core::gpu::{Gpu, GpuOptions};
 use silvr_core::lidar::{map, project};
 use silvr_core::synthetic::{generate, Preset};
+use silvr_core::train::export::ExportDepth;
 
 mod ingest;
 mod train;
@@ -132,6 +133,10 @@ enum Command {
         /// Training rays rendered for the exported point cloud (0: none).
         #[arg(long, default_value_t = 200_000)]
         export_rays: usize,
+        /// Depth that places an exported point on its ray: expected (SiLVR's exporter) or median
+        /// (nerfacto's depth, which never floats between two surfaces at an object's silhouette).
+        #[arg(long, default_value = "expected", value_parser = parse_export_depth)]
+        export_depth: ExportDepth,
         /// DS-NeRF σ schedule, standard deviation in metres: start, end (decay ×0.99985 per step).
         #[arg(long, num_args = 2, value_names = ["START", "END"])]
         depth_sigma: Option<Vec<f32>>,
@@ -297,6 +302,7 @@ fn main() {
             downscale,
             seed,
             export_rays,
+            export_depth,
             depth_sigma,
         } => train::run(&train::TrainArgs {
             depth_sigma: depth_sigma.map(|v| (v[0], v[1])),
@@ -312,6 +318,7 @@ fn main() {
             downscale,
             seed,
             export_rays,
+            export_depth,
             quiet: false,
             view_normals: true,
             uncertainty: None,
@@ -670,6 +677,7 @@ fn demo(
             downscale: overrides.downscale,
             seed,
             export_rays: demo_export_rays(name),
+            export_depth: ExportDepth::default(),
             quiet: true,
             // The demo reports PSNR/SSIM; normal renders are `silvr train`'s.
             view_normals: false,
@@ -781,6 +789,10 @@ fn demo_training(preset: &str) -> (u32, &'static str, usize) {
 
 /// Training rays exported as points: nerfstudio's default million on the full loop, fewer on the short
 /// `ci` street (completeness there is dominated by what no camera saw).
+fn parse_export_depth(s: &str) -> Result<ExportDepth, String> {
+    ExportDepth::parse(s).ok_or_else(|| format!("{s:?}: expected `expected` or `median`"))
+}
+
 fn demo_export_rays(preset: &str) -> usize {
     match preset {
         "ci" => 60_000,

@@ -64,6 +64,7 @@ pub struct TrainArgs {
     pub downscale: u32,
     pub seed: u64,
     pub export_rays: usize,
+    pub export_depth: silvr_core::train::export::ExportDepth,
     pub quiet: bool,
     /// Normals for the first held-out view and the exported points (six more density evaluations per
     /// sample).
@@ -250,6 +251,7 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
             a.export_rays,
             a.seed ^ 0xE0,
             a.view_normals,
+            a.export_depth,
         ))?;
         let p = a.out.join("points.ply");
         silvr_core::pointcloud::write_ply(&p, &cloud)?;
@@ -571,7 +573,12 @@ pub fn bench_sampler(a: &SamplerBenchArgs) -> Result<()> {
         if a.dataset.join("gt/cloud.ply").is_file() && a.export_rays > 0 {
             let rays = t.export_rays(a.export_rays, 0xE0);
             let out = cpu::render_rays_with(sampling, &t.model, &t.params, &rays, false, 4096)?;
-            let cloud = silvr_core::train::export::points_from(&t.data.frame, &rays, &out);
+            let cloud = silvr_core::train::export::points_from(
+                &t.data.frame,
+                &rays,
+                &out,
+                silvr_core::train::export::ExportDepth::default(),
+            );
             let tmp = tempfile_path(kind);
             silvr_core::pointcloud::write_ply(&tmp, &cloud)?;
             let ev = silvr_core::eval::evaluate_files_full(

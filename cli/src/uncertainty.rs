@@ -342,7 +342,11 @@ pub fn evaluate(
 
 /// Mean read-out per semantic label at the exact surface points of the training views (synthetic
 /// datasets: `gt/semantic` and `gt/depth` beside `images/`), plus points 5 m under the visible surfaces,
-/// which no ray reaches (they should read the prior). `None` for datasets without that ground truth.
+/// which no ray reaches (they should read the prior). Each label is also summarised per band of range
+/// from the camera ([`RANGE_BANDS_M`]): how many rays see a grid cell, and at what footprint, falls with
+/// range, so comparing surfaces in the same band separates what their texture does to the uncertainty from
+/// where they stand (the road runs under every camera, the facades are metres away). `None` for datasets
+/// without that ground truth.
 pub fn by_label(dataset: &Path, fisher: &Fisher) -> Result<Option<serde_json::Value>> {
     use silvr_core::synthetic::world::Label;
     let data = TrainData::load(
@@ -354,6 +358,7 @@ pub fn by_label(dataset: &Path, fisher: &Fisher) -> Result<Option<serde_json::Va
     )?;
     let scale = data.frame.scale as f32;
     let mut per_label: Vec<Vec<[f32; 3]>> = vec![Vec::new(); Label::ALL.len()];
+    let mut band_of: Vec<Vec<usize>> = vec![Vec::new(); Label::ALL.len()];
     let mut under = Vec::new();
     for &i in &data.train {
         let name = &data.images[i].name;
@@ -386,8 +391,10 @@ pub fn by_label(dataset: &Path, fisher: &Fisher) -> Result<Option<serde_json::Va
                 let Some((o, d)) = data.ray(i, x, y) else {
                     continue;
                 };
-                let t = range as f32 / 256.0 * scale;
+                let metres = range as f32 / 256.0;
+                let t = metres * scale;
                 per_label[label].push([0, 1, 2].map(|k| o[k] + d[k] * t));
+                band_of[label].push(range_band(metres));
                 if label == Label::Road as usize {
                     let mut p = [0, 1, 2].map(|k| o[k] + d[k] * t);
                     // 5 m below, in the scene frame (z up, as the world).
@@ -398,25 +405,53 @@ pub fn by_label(dataset: &Path, fisher: &Fisher) -> Result<Option<serde_json::Va
         }
     }
     let mean = |v: &[f32]| v.iter().map(|&x| x as f64).sum::<f64>() / v.len().max(1) as f64;
-    let summary = |pts: &[[f32; 3]]| {
-        let u = uncertainty::read_out(fisher, pts, data.frame.scale);
+    let summary = |u: &uncertainty::PointUncertainty, keep: &dyn Fn(usize) -> bool| {
+        let pick = |v: &[f32]| -> Vec<f32> {
+            v.iter()
+                .enumerate()
+                .filter(|(i, _)| keep(*i))
+                .map(|(_, &x)| x)
+                .collect()
+        };
+        let colour = pick(&u.colour);
         serde_json::json!({
-            "points": pts.len(),
-            "colour": mean(&u.colour),
-            "depth": mean(&u.depth),
-            "combined": mean(&u.combined),
+            "points": colour.len(),
+            "colour": mean(&colour),
+            "depth": mean(&pick(&u.depth)),
+            "combined": mean(&pick(&u.combined)),
         })
     };
     let mut out = serde_json::json!({});
     for l in Label::ALL {
         let pts = &per_label[l as usize];
-        if !pts.is_empty() {
-            out[l.name()] = summary(pts);
+        if pts.is_empty() {
+            continue;
         }
+        let u = uncertainty::read_out(fisher, pts, data.frame.scale);
+        let mut entry = summary(&u, &|_| true);
+        let bands = &band_of[l as usize];
+        for (b, name) in RANGE_BAND_NAMES.iter().enumerate() {
+            if bands.contains(&b) {
+                entry["by_range_m"][*name] = summary(&u, &|i| bands[i] == b);
+            }
+        }
+        out[l.name()] = entry;
     }
-    out["under_road_5m"] = summary(&under);
+    let u = uncertainty::read_out(fisher, &under, data.frame.scale);
+    out["under_road_5m"] = summary(&u, &|_| true);
     out["prior"] = (fisher.prior_log_std() as f64 - data.frame.scale.log10()).into();
     Ok(Some(out))
+}
+
+/// Upper edges (metres) of the range bands of [`by_label`]; the last band is open.
+pub const RANGE_BANDS_M: [f32; 3] = [5.0, 10.0, 20.0];
+const RANGE_BAND_NAMES: [&str; 4] = ["0-5", "5-10", "10-20", "20+"];
+
+fn range_band(metres: f32) -> usize {
+    RANGE_BANDS_M
+        .iter()
+        .position(|&edge| metres < edge)
+        .unwrap_or(RANGE_BANDS_M.len())
 }
 
 fn write(path: &Path, bytes: &[u8]) -> Result<()> {

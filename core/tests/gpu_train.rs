@@ -145,6 +145,7 @@ fn rendering_matches_the_cpu_reference() {
                         o.normal[2],
                         o.depth,
                         r.expected_depth,
+                        r.median_depth,
                     ]
                 })
                 .collect()

@@ -131,7 +131,13 @@ fn training_lowers_the_loss_and_uses_the_lidar() {
         first.rgb_mse
     );
     // Points land near the wall (z = WALL).
-    let cloud = pollster::block_on(t.export_points(2000, 1, true)).unwrap();
+    let cloud = pollster::block_on(t.export_points(
+        2000,
+        1,
+        true,
+        silvr_core::train::export::ExportDepth::Expected,
+    ))
+    .unwrap();
     assert!(cloud.len() > 100, "{} points", cloud.len());
     let mut zs: Vec<f64> = cloud.positions.iter().map(|p| p.z).collect();
     zs.sort_by(f64::total_cmp);

@@ -573,6 +573,19 @@ pub fn train_step_with(
 pub struct RenderedRay {
     pub out: RayOutput,
     pub expected_depth: f32,
+    /// nerfacto's default depth: see [`median_depth`].
+    pub median_depth: f32,
+}
+
+impl RenderedRay {
+    /// A ray's rendered outputs with both depths from its final weights and sample edges.
+    pub fn new(out: RayOutput, weights: &[f32], t_edges: &[f32]) -> Self {
+        Self {
+            out,
+            expected_depth: expected_depth(&out, t_edges),
+            median_depth: median_depth(weights, t_edges),
+        }
+    }
 }
 
 /// SiLVR's expected depth Σwt / Σw, clipped to the ray's sampled range `t_edges` (far end without weight).
@@ -583,6 +596,23 @@ pub fn expected_depth(o: &RayOutput, t_edges: &[f32]) -> f32 {
     } else {
         far
     }
+}
+
+/// The median depth: where the cumulative weight reaches ½, interpolated linearly within the sample that
+/// crosses it (the far end when the weight never reaches ½). Unlike the expected depth it never lands
+/// between two surfaces a ray's weight is split across (an object's silhouette), where the expected depth
+/// floats in free space. nerfacto returns the crossing sample's midpoint instead, which quantises distant
+/// surfaces to their (long, contracted-space) intervals.
+pub fn median_depth(weights: &[f32], t_edges: &[f32]) -> f32 {
+    let mut c = 0.0;
+    for (i, &w) in weights.iter().enumerate() {
+        if c + w >= 0.5 && w > 0.0 {
+            let f = ((0.5 - c) / w).clamp(0.0, 1.0);
+            return t_edges[i] + f * (t_edges[i + 1] - t_edges[i]);
+        }
+        c += w;
+    }
+    t_edges[t_edges.len() - 1]
 }
 
 /// Renders rays (no jitter, fully annealed proposals) in chunks of `chunk`; normals on request.
@@ -621,10 +651,8 @@ pub fn render_rays_with(
         let rendered = render::render_cpu(&rb, Background::LastSample)?;
         for (ray, o) in rendered.rays.into_iter().enumerate() {
             let te = &t[ray * (n + 1)..(ray + 1) * (n + 1)];
-            out.push(RenderedRay {
-                out: o,
-                expected_depth: expected_depth(&o, te),
-            });
+            let w = &rendered.weights[ray * n..(ray + 1) * n];
+            out.push(RenderedRay::new(o, w, te));
         }
     }
     Ok(out)
@@ -658,6 +686,27 @@ pub(crate) fn random_rays(rng: &mut impl rand::Rng, r: usize) -> Vec<TrainRay> {
 mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
+
+    /// The median depth is where the cumulative weight reaches ½, interpolated within the crossing
+    /// sample: on a ray whose weight is split between a near and a far surface it sits on one of them,
+    /// while the expected depth floats between; without ½ of the weight it is the far end.
+    #[test]
+    fn median_depth_sits_on_a_surface() {
+        let edges = [1.0, 2.0, 3.0, 4.0, 5.0];
+        let split = [0.45, 0.0, 0.0, 0.5];
+        assert_eq!(median_depth(&split, &edges), 4.1);
+        let out = RayOutput {
+            accumulation: 0.99,
+            depth: 0.45 * 1.5 + 0.5 * 4.5,
+            ..Default::default()
+        };
+        let e = expected_depth(&out, &edges);
+        assert!(e > 2.9 && e < 3.2, "expected depth {e}");
+        assert_eq!(median_depth(&[0.25, 0.25, 0.1, 0.0], &edges), 3.0);
+        assert_eq!(median_depth(&[0.0, 0.5, 0.1, 0.0], &edges), 3.0);
+        assert_eq!(median_depth(&[0.0, 0.8, 0.1, 0.0], &edges), 2.625);
+        assert_eq!(median_depth(&[0.1, 0.1, 0.1, 0.1], &edges), 5.0);
+    }
 
     /// The whole step's analytic gradient for the radiance field's tensors (grid, density MLP, colour MLP,
     /// appearance) against central differences of the step's loss. The interlevel term is off: nerfacto

@@ -34,6 +34,34 @@ pub struct ViewScore {
     pub ssim: f64,
 }
 
+/// Which rendered depth places an exported point on its ray.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ExportDepth {
+    /// Σwt / Σw: SiLVR's exporter (its renderer replaces nerfacto's depth with the expected depth).
+    #[default]
+    Expected,
+    /// Where the cumulative weight reaches ½: nerfacto's own depth, and so `ns-export pointcloud`'s.
+    Median,
+}
+
+impl ExportDepth {
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "expected" => Some(Self::Expected),
+            "median" => Some(Self::Median),
+            _ => None,
+        }
+    }
+
+    fn of(self, r: &RenderedRay) -> f32 {
+        match self {
+            Self::Expected => r.expected_depth,
+            Self::Median => r.median_depth,
+        }
+    }
+}
+
 /// Minimum accumulation of an exported point (SiLVR / nerfstudio).
 pub const EXPORT_MIN_ACCUMULATION: f32 = 0.98;
 
@@ -148,8 +176,8 @@ impl Trainer {
     }
 
     /// SiLVR's point export: `rays` random training pixels (seeded), kept where the accumulation is at least
-    /// [`EXPORT_MIN_ACCUMULATION`]; positions in metres in the dataset frame, rendered colour and normal,
-    /// and the accumulation as a scalar field.
+    /// [`EXPORT_MIN_ACCUMULATION`], placed at the `depth` along the ray; positions in metres in the dataset
+    /// frame, rendered colour and normal, and the accumulation as a scalar field.
     /// Without `normals` the cloud has none (they cost six more density evaluations per sample).
     /// nerfstudio also crops to the [−1, 1]³ cube of its pose normalisation; we do not: on a walked
     /// trajectory that cube holds little of the street (measured on the ci world: completeness 4.5 m →
@@ -159,10 +187,11 @@ impl Trainer {
         rays: usize,
         seed: u64,
         normals: bool,
+        depth: ExportDepth,
     ) -> Result<PointCloud, GpuError> {
         let batch = self.export_rays(rays, seed);
         let out = self.render(&batch, normals).await?;
-        let mut cloud = points_from(&self.data.frame, &batch, &out);
+        let mut cloud = points_from(&self.data.frame, &batch, &out, depth);
         if !normals {
             cloud.normals = None;
         }
@@ -198,22 +227,23 @@ fn o_or_zero(o: &DVec3) -> [f32; 3] {
     o.as_vec3().to_array()
 }
 
-/// Points of rendered rays with enough accumulation, in metres.
+/// Points of rendered rays with enough accumulation, at `depth` along the ray, in metres.
 pub fn points_from(
     frame: &super::data::SceneFrame,
     rays: &[TrainRay],
     out: &[RenderedRay],
+    depth: ExportDepth,
 ) -> PointCloud {
     let mut cloud = PointCloud::new();
     let mut colors = Vec::new();
     let mut normals = Vec::new();
     let mut acc = Vec::new();
     for (ray, o) in rays.iter().zip(out) {
-        if o.out.accumulation < EXPORT_MIN_ACCUMULATION || !o.expected_depth.is_finite() {
+        let t = depth.of(o);
+        if o.out.accumulation < EXPORT_MIN_ACCUMULATION || !t.is_finite() {
             continue;
         }
-        let p = Vec3::from(ray.origin) + Vec3::from(ray.dir) * o.expected_depth;
-
+        let p = Vec3::from(ray.origin) + Vec3::from(ray.dir) * t;
         cloud.positions.push(frame.to_metric(p.as_dvec3()));
         colors.push(o.out.rgb.map(to_u8));
         normals.push(Vec3::from(o.out.normal));

@@ -977,18 +977,19 @@ impl GpuEngine {
             .await?;
             let mut back = self
                 .gpu
-                .finish_and_read::<f32>(enc, &[(&w.rays_out, r * 8), (&w.t, r * (n + 1))])
+                .finish_and_read::<f32>(
+                    enc,
+                    &[(&w.rays_out, r * 8), (&w.t, r * (n + 1)), (&w.w_fin, r * n)],
+                )
                 .await?
                 .into_iter();
             let ro: Vec<RayOutput> =
                 bytemuck::cast_slice(&back.next().unwrap_or_default()).to_vec();
             let t = back.next().unwrap_or_default();
+            let wf = back.next().unwrap_or_default();
             for (ray, o) in ro.into_iter().enumerate() {
                 let te = &t[ray * (n + 1)..(ray + 1) * (n + 1)];
-                out.push(RenderedRay {
-                    out: o,
-                    expected_depth: super::cpu::expected_depth(&o, te),
-                });
+                out.push(RenderedRay::new(o, &wf[ray * n..(ray + 1) * n], te));
             }
         }
         Ok(out)
