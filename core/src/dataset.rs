@@ -131,13 +131,15 @@ impl DatasetWriter {
     }
 
     /// The pose files of every dataset (TUM text): `poses/{base,lidar}_tum.txt` and `poses/<camera>_tum.txt`
-    /// at the keyframe `times`, and the trajectory they were taken from, `poses/odometry_lidar_tum.txt`.
+    /// (`cameras[i]` for `rig.cameras[i]`) at the keyframe `times`, the trajectory they were taken from,
+    /// `poses/odometry_lidar_tum.txt`, and the rig they were taken with, `calib/rig.json`.
     pub fn write_poses(
         &self,
         times: &[f64],
         base: &[Se3],
         lidar: &[Se3],
-        cameras: &[(&str, &[Se3])],
+        rig: &crate::rig::Rig,
+        cameras: &[Vec<Se3>],
         odometry: &Trajectory,
     ) -> Result<(), DatasetError> {
         self.write("poses/base_tum.txt", tum_string(times, base).as_bytes())?;
@@ -146,13 +148,13 @@ impl DatasetWriter {
             "poses/odometry_lidar_tum.txt",
             tum_string(odometry.stamps(), odometry.poses()).as_bytes(),
         )?;
-        for (name, poses) in cameras {
+        for (cam, poses) in rig.cameras.iter().zip(cameras) {
             self.write(
-                &format!("poses/{name}_tum.txt"),
+                &format!("poses/{}_tum.txt", cam.name),
                 tum_string(times, poses).as_bytes(),
             )?;
         }
-        Ok(())
+        self.write_json("calib/rig.json", rig)
     }
 
     /// Every file written so far (dataset-relative path → bytes).

@@ -691,14 +691,14 @@ pub async fn ingest_bag(
     let times: Vec<f64> = order.iter().map(|&i| times[i]).collect();
     let records: Vec<KeyframeRecord> = order.iter().map(|&i| records[i].clone()).collect();
     frames.sort_by_key(|f| f.keyframe);
-    let cameras: Vec<(&str, &[Se3])> = rig
-        .cameras
-        .iter()
-        .zip(&cam_poses)
-        .map(|(c, p)| (c.name.as_str(), p.as_slice()))
-        .collect();
-    out.write_poses(&times, &base_poses, &lidar_poses, &cameras, &trajectory)?;
-    out.write_json("calib/rig.json", &rig)?;
+    out.write_poses(
+        &times,
+        &base_poses,
+        &lidar_poses,
+        &rig,
+        &cam_poses,
+        &trajectory,
+    )?;
     let lidar = LidarCalib {
         topic: ing.lidar_topic.clone(),
         frame: lidar_frame.clone(),

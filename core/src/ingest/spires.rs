@@ -385,14 +385,14 @@ pub async fn import_spires(
         base_poses.push(t_world_lidar * t_base_lidar.inverse());
     }
     progress(total, total);
-    let cameras: Vec<(&str, &[Se3])> = rig
-        .cameras
-        .iter()
-        .zip(&cam_poses)
-        .map(|(c, p)| (c.name.as_str(), p.as_slice()))
-        .collect();
-    w.write_poses(&times, &base_poses, &lidar_poses, &cameras, &lidar_traj)?;
-    w.write_json("calib/rig.json", &rig)?;
+    w.write_poses(
+        &times,
+        &base_poses,
+        &lidar_poses,
+        &rig,
+        &cam_poses,
+        &lidar_traj,
+    )?;
     let n_images = frames.len();
     let transforms = products::transforms(frames, products::every_tenth_keyframe);
     w.write_json("transforms.json", &transforms)?;

@@ -396,13 +396,14 @@ pub async fn generate_recording(
     });
 
     // Poses, calibration, transforms.json, manifest.
-    let cameras: Vec<(&str, &[Se3])> = cams
-        .iter()
-        .zip(&cam_poses)
-        .map(|(&c, p)| (c, p.as_slice()))
-        .collect();
-    o.write_poses(&image_times, &base_poses, &lidar_poses, &cameras, &odo)?;
-    o.write_json("calib/rig.json", &preset.rig)?;
+    o.write_poses(
+        &image_times,
+        &base_poses,
+        &lidar_poses,
+        &preset.rig,
+        &cam_poses,
+        &odo,
+    )?;
     o.write_json("calib/lidar.json", &preset.lidar)?;
     let n_frames = frames.len();
     // Hold out every 10th keyframe (all its cameras) for novel-view evaluation.
