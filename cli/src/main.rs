@@ -135,7 +135,7 @@ enum Command {
         export_rays: usize,
         /// Depth that places an exported point on its ray: expected (SiLVR's exporter) or median
         /// (nerfacto's depth, which never floats between two surfaces at an object's silhouette).
-        #[arg(long, default_value = "expected", value_parser = parse_export_depth)]
+        #[arg(long, default_value = "expected")]
         export_depth: ExportDepth,
         /// DS-NeRF σ schedule, standard deviation in metres: start, end (decay ×0.99985 per step).
         #[arg(long, num_args = 2, value_names = ["START", "END"])]
@@ -794,10 +794,6 @@ fn demo_training(preset: &str) -> (u32, &'static str, usize) {
 
 /// Training rays exported as points: nerfstudio's default million on the full loop, fewer on the short
 /// `ci` street (completeness there is dominated by what no camera saw).
-fn parse_export_depth(s: &str) -> Result<ExportDepth, String> {
-    ExportDepth::parse(s).ok_or_else(|| format!("{s:?}: expected `expected` or `median`"))
-}
-
 fn demo_export_rays(preset: &str) -> usize {
     match preset {
         "ci" => 60_000,

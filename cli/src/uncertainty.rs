@@ -22,7 +22,7 @@ pub const FIELDS: [(&str, Modality); 3] = [
     ("log_std_combined", Modality::Combined),
 ];
 
-/// Filtering rule (documented, not tuned per scene): Tukey's outer fence on the exported points'
+/// Filtering rule (documented, not tuned per scene): Tukey's (inner) fence on the exported points'
 /// combined log10 std: drop a point above Q3 + [`FILTER_FENCE`]·(Q3 − Q1), i.e. an outlier of the cloud's
 /// own uncertainty distribution. The fence scales with the spread, so it adapts to how many rays the pass
 /// used and to the scene's extent without a per-scene constant. (The first rule, median + 0.5 decades,

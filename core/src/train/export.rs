@@ -45,15 +45,19 @@ pub enum ExportDepth {
     Median,
 }
 
-impl ExportDepth {
-    pub fn parse(s: &str) -> Option<Self> {
+impl std::str::FromStr for ExportDepth {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
         match s {
-            "expected" => Some(Self::Expected),
-            "median" => Some(Self::Median),
-            _ => None,
+            "expected" => Ok(Self::Expected),
+            "median" => Ok(Self::Median),
+            _ => Err(format!("{s:?}: expected `expected` or `median`")),
         }
     }
+}
 
+impl ExportDepth {
     fn of(self, r: &RenderedRay) -> f32 {
         match self {
             Self::Expected => r.expected_depth,
