@@ -108,7 +108,8 @@ impl ModelConfig {
             input: self.field.grid.output_dim(),
             hidden: self.field.density_hidden,
             hidden_layers: 1,
-            output: 1 + self.field.geo_features,
+            // Saturating: an absurd width (a crafted checkpoint) is refused by `validate`, not overflowed.
+            output: self.field.geo_features.saturating_add(1),
             hidden_activation: Activation::Relu,
             output_activation: Activation::None,
         }
@@ -116,7 +117,11 @@ impl ModelConfig {
 
     pub fn colour_mlp(&self) -> MlpConfig {
         MlpConfig {
-            input: 16 + self.field.geo_features + self.field.appearance_dim,
+            input: self
+                .field
+                .geo_features
+                .saturating_add(self.field.appearance_dim)
+                .saturating_add(16),
             hidden: self.field.colour_hidden,
             hidden_layers: self.field.colour_hidden_layers,
             output: 3,
@@ -169,9 +174,19 @@ impl ModelConfig {
         Ok(())
     }
 
-    /// Tensor names and sizes, in parameter order.
+    /// Tensor names and sizes, in parameter order. Never overflows: an absurd shape is an error.
     pub fn tensor_shapes(&self) -> Result<Vec<(String, usize)>, GpuError> {
         self.validate()?;
+        let appearance = self
+            .images
+            .max(1)
+            .checked_mul(self.field.appearance_dim)
+            .ok_or_else(|| {
+                GpuError::InvalidInput(format!(
+                    "model: {} images × appearance_dim {} overflow",
+                    self.images, self.field.appearance_dim
+                ))
+            })?;
         let mut v = vec![
             (
                 "field.grid".to_string(),
@@ -179,10 +194,7 @@ impl ModelConfig {
             ),
             ("field.density".to_string(), self.density_mlp().n_params()),
             ("field.colour".to_string(), self.colour_mlp().n_params()),
-            (
-                "field.appearance".to_string(),
-                self.images.max(1) * self.field.appearance_dim,
-            ),
+            ("field.appearance".to_string(), appearance),
         ];
         for l in 0..self.proposals.len() {
             v.push((
