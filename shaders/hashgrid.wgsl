@@ -15,14 +15,19 @@
 //   encode          one thread per (level, point), level-major (index = l * n + p) so a workgroup shares
 //                   one level's metadata and hashing branch.
 //   clear_grad      one thread per 4 parameter words: d_params = 0.
-//   backward_params one thread per (level, point): d_params[corner] += w_corner * dL/dfeature, as float adds
-//                   built from a compare-exchange loop on atomic<u32> (WebGPU has no atomic<f32>).
+//   backward_params one thread per (level, run of `run` consecutive points): d_params[corner] += w_corner *
+//                   dL/dfeature, as float adds built from a compare-exchange loop on atomic<u32> (WebGPU has
+//                   no atomic<f32>). Consecutive points are consecutive samples of one ray (or the FD
+//                   points of one sample), which at the coarse levels fall in the same cell: the thread sums
+//                   their contributions and adds once per cell it leaves, so the dense coarse levels, which
+//                   every sample of the batch hits, see a fraction of the atomics and of their contention.
+//                   NF (features per level) comes from the prelude the engine compiles in front of this
+//                   file, so the per-corner sums live in registers.
 //   backward_pos    one thread per point, all levels: dL/dx = sum_l scale_l * sum_c dw_c/dt * <param_c, g_l>.
 //                   Zero along an axis where the input was clamped (outside [0, 1]).
 
 const WG: u32 = 64u;
 const MAX_LEVELS: u32 = 32u;
-const MAX_FEATURES: u32 = 8u;
 const PRIME_Y: u32 = 2654435761u;
 const PRIME_Z: u32 = 805459861u;
 
@@ -46,6 +51,11 @@ struct Grid {
     features: u32,
     // Parameter words (entries * features).
     words: u32,
+    // backward_params: consecutive points one thread handles (its merge window).
+    run: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
     level: array<Level, MAX_LEVELS>,
 }
 
@@ -125,7 +135,7 @@ fn encode(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: ve
     }
     let l = i / n;
     let p = i - l * n;
-    let nf = grid.features;
+    let nf = NF;
     let lv = grid.level[l];
     let cell = locate(lv, clamp(raw_position(p), vec3<f32>(0.0), vec3<f32>(1.0)));
     let corners = cell_corners(lv, cell, nf);
@@ -165,35 +175,69 @@ fn atomic_add_f32(i: u32, v: f32) {
     }
 }
 
+// Adds a cell's summed contributions, corner by corner (zero sums are skipped: fewer atomics, and
+// untouched words stay exactly zero).
+fn flush_cell(entry: array<u32, 8>, acc: array<f32, 8 * NF>) {
+    for (var c = 0u; c < 8u; c++) {
+        for (var f = 0u; f < NF; f++) {
+            let v = acc[c * NF + f];
+            if (v != 0.0) {
+                atomic_add_f32(entry[c] + f, v);
+            }
+        }
+    }
+}
+
 @compute @workgroup_size(64)
 fn backward_params(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                    @builtin(local_invocation_index) li: u32) {
     let i = linear_index(wg, nwg, li);
     let n = grid.n;
-    if (i >= n * grid.levels) {
+    let runs = (n + grid.run - 1u) / grid.run;
+    if (i >= runs * grid.levels) {
         return;
     }
-    let l = i / n;
-    let p = i - l * n;
-    let nf = grid.features;
+    let l = i / runs;
+    let p0 = (i - l * runs) * grid.run;
+    let p1 = min(p0 + grid.run, n);
     let lv = grid.level[l];
-    let cell = locate(lv, clamp(raw_position(p), vec3<f32>(0.0), vec3<f32>(1.0)));
-    let corners = cell_corners(lv, cell, nf);
-    let entry = corners.entry;
-    let weight = corners.weight;
-    let row = p * grid.levels * nf + l * nf;
-    for (var f = 0u; f < nf; f++) {
-        let g = d_features[row + f];
-        // Zero contributions are skipped: fewer atomics, and untouched words stay exactly zero.
-        if (g == 0.0) {
+    var acc: array<f32, 8 * NF>;
+    var entry: array<u32, 8>;
+    var base = vec3<u32>(0xffffffffu);
+    for (var p = p0; p < p1; p++) {
+        let cell = locate(lv, clamp(raw_position(p), vec3<f32>(0.0), vec3<f32>(1.0)));
+        let row = p * grid.levels * NF + l * NF;
+        var g: array<f32, NF>;
+        var live = false;
+        for (var f = 0u; f < NF; f++) {
+            g[f] = d_features[row + f];
+            live = live || g[f] != 0.0;
+        }
+        if (!live) {
             continue;
         }
-        for (var c = 0u; c < 8u; c++) {
-            let v = weight[c] * g;
-            if (v != 0.0) {
-                atomic_add_f32(entry[c] + f, v);
+        if (any(cell.base != base)) {
+            if (base.x != 0xffffffffu) {
+                flush_cell(entry, acc);
+            }
+            base = cell.base;
+            let corners = cell_corners(lv, cell, NF);
+            entry = corners.entry;
+            for (var k = 0u; k < 8u * NF; k++) {
+                acc[k] = 0.0;
             }
         }
+        for (var c = 0u; c < 8u; c++) {
+            let b = corner_offset(c);
+            let w3 = corner_factors(cell.t, b);
+            let w = w3.x * w3.y * w3.z;
+            for (var f = 0u; f < NF; f++) {
+                acc[c * NF + f] += w * g[f];
+            }
+        }
+    }
+    if (base.x != 0xffffffffu) {
+        flush_cell(entry, acc);
     }
 }
 
@@ -204,11 +248,11 @@ fn backward_pos(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) n
     if (p >= grid.n) {
         return;
     }
-    let nf = grid.features;
+    let nf = NF;
     let raw = raw_position(p);
     let x = clamp(raw, vec3<f32>(0.0), vec3<f32>(1.0));
     var dx = vec3<f32>(0.0);
-    var g: array<f32, MAX_FEATURES>;
+    var g: array<f32, NF>;
     for (var l = 0u; l < grid.levels; l++) {
         let lv = grid.level[l];
         let row = p * grid.levels * nf + l * nf;

@@ -33,7 +33,6 @@
 const WG: u32 = 64u;
 // Rows of the input tile staged per step of backward_weights, and input columns per block.
 const TILE_ROWS: u32 = 64u;
-const BLOCK: u32 = 16u;
 
 const FLAG_D_INPUT: u32 = 1u;
 const FLAG_ACCUMULATE: u32 = 2u;
@@ -72,127 +71,69 @@ struct Mlp {
 
 // One layer's weights (64 x 64 f32 = 16 KiB, the portable limit): forward_layer and backward_layer.
 var<workgroup> ws: array<vec4<f32>, 1024>;
-// TILE_ROWS x BLOCK layer inputs: backward_weights.
-var<workgroup> tile: array<vec4<f32>, 256>;
+// TILE_ROWS x WB layer inputs: backward_weights.
+var<workgroup> tile: array<vec4<f32>, TILE_ROWS * WB / 4u>;
 
 fn group_index(wg: vec3<u32>, nwg: vec3<u32>) -> u32 {
     return wg.y * nwg.x + wg.x;
 }
 
-fn weight(l: u32, j: u32, k: u32) -> f32 {
-    let d = mlp.layer[2u * l];
-    if (j < d.y && k < d.x) {
-        return params[d.z + j * d.x + k];
+// The layer a forward_layer / backward_layer pipeline is specialised to comes from the prelude the engine
+// compiles in front of this file (field/mlp.rs layer_prelude): L_IN, L_OUT (fan-in, fan-out), L_W, L_B
+// (first weight, first bias), L_SAVED (its output's offset in a saved row), L_DELTA (its pre-activation
+// gradient's offset in a scratch row), L_FIRST, L_LAST, L_SIGMOID, L_BELOW_SAVED / L_BELOW_DELTA (the same
+// offsets of the layer below), SAVED_STRIDE, DELTA_STRIDE. Constant loop bounds let the driver unroll the
+// per-row loops and keep the row in registers: with bounds from the uniform, lavapipe kept the private
+// arrays in per-lane scratch memory (and a GPU keeps them in local memory).
+const K4: u32 = max((L_IN + 3u) / 4u, 1u);
+const M4: u32 = max((L_OUT + 3u) / 4u, 1u);
+
+fn w_at(j: u32, k: u32) -> f32 {
+    if (j < L_OUT && k < L_IN) {
+        return params[L_W + j * L_IN + k];
     }
     return 0.0;
 }
 
-fn bias4(l: u32, j: u32) -> vec4<f32> {
-    let d = mlp.layer[2u * l];
-    let o = d.w + j;
-    if (j + 4u <= d.y) {
-        return vec4<f32>(params[o], params[o + 1u], params[o + 2u], params[o + 3u]);
-    }
-    var b = vec4<f32>(0.0);
-    for (var c = 0u; j + c < d.y; c++) {
-        b[c] = params[o + c];
-    }
-    return b;
-}
-
-// ws[j * k4 + q] = W[j][4q .. 4q + 4], zero past fan_in (k4 = ceil(fan_in / 4)). Lane j stages row j
-// (fan_out <= 64 lanes): no per-lane integer division, which CPU drivers run lane by lane.
-fn stage_weights(l: u32, li: u32) {
-    let d = mlp.layer[2u * l];
-    let k_in = d.x;
-    if (li >= d.y) {
+// ws[j * K4 + q] = W[j][4q .. 4q + 4], zero past fan_in. Lane j stages row j (fan_out <= 64 lanes).
+fn stage_weights(li: u32) {
+    if (li >= L_OUT) {
         return;
     }
-    let src = d.z + li * k_in;
-    let dst = li * ((k_in + 3u) / 4u);
-    var k = 0u;
-    for (; k + 4u <= k_in; k += 4u) {
-        let s = src + k;
-        ws[dst + k / 4u] = vec4<f32>(params[s], params[s + 1u], params[s + 2u], params[s + 3u]);
-    }
-    if (k < k_in) {
-        ws[dst + k / 4u] = vec4<f32>(weight(l, li, k), weight(l, li, k + 1u), weight(l, li, k + 2u), 0.0);
+    let dst = li * K4;
+    for (var q = 0u; q < K4; q++) {
+        let k = 4u * q;
+        ws[dst + q] = vec4<f32>(w_at(li, k), w_at(li, k + 1u), w_at(li, k + 2u), w_at(li, k + 3u));
     }
 }
 
-// ws[k * m4 + q] = (W[4q][k], .., W[4q + 3][k]), zero past fan_out (m4 = ceil(fan_out / 4)). Lane k stages
-// row k of the transpose.
-fn stage_weights_transposed(l: u32, li: u32) {
-    let d = mlp.layer[2u * l];
-    let k_in = d.x;
-    let m = d.y;
-    if (li >= k_in) {
+// ws[k * M4 + q] = (W[4q][k], .., W[4q + 3][k]), zero past fan_out. Lane k stages row k of the transpose.
+fn stage_weights_transposed(li: u32) {
+    if (li >= L_IN) {
         return;
     }
-    let src = d.z + li;
-    let dst = li * ((m + 3u) / 4u);
-    var j = 0u;
-    for (; j + 4u <= m; j += 4u) {
-        let s = src + j * k_in;
-        ws[dst + j / 4u] = vec4<f32>(params[s], params[s + k_in], params[s + 2u * k_in], params[s + 3u * k_in]);
-    }
-    if (j < m) {
-        ws[dst + j / 4u] = vec4<f32>(weight(l, j, li), weight(l, j + 1u, li), weight(l, j + 2u, li), 0.0);
+    let dst = li * M4;
+    for (var q = 0u; q < M4; q++) {
+        let j = 4u * q;
+        ws[dst + q] = vec4<f32>(w_at(j, li), w_at(j + 1u, li), w_at(j + 2u, li), w_at(j + 3u, li));
     }
 }
 
-fn sigmoid(z: vec4<f32>) -> vec4<f32> {
-    return vec4<f32>(1.0) / (vec4<f32>(1.0) + exp(-z));
+fn sigmoid1(z: f32) -> f32 {
+    return 1.0 / (1.0 + exp(-z));
 }
 
-// Row r's input to layer l (the network input, or the saved outputs of layer l - 1), zero past fan_in.
-fn layer_row(l: u32, r: u32) -> array<vec4<f32>, 16> {
-    var a: array<vec4<f32>, 16>;
-    let k_in = mlp.layer[2u * l].x;
-    var k = 0u;
-    if (l == 0u) {
-        let base = r * k_in;
-        for (; k + 4u <= k_in; k += 4u) {
-            let b = base + k;
-            a[k / 4u] = vec4<f32>(input[b], input[b + 1u], input[b + 2u], input[b + 3u]);
-        }
-        for (; k < k_in; k++) {
-            a[k / 4u][k & 3u] = input[base + k];
-        }
-    } else {
-        let base = r * mlp.saved_stride + mlp.layer[2u * (l - 1u) + 1u].y;
-        for (; k + 4u <= k_in; k += 4u) {
-            let b = base + k;
-            a[k / 4u] = vec4<f32>(saved[b], saved[b + 1u], saved[b + 2u], saved[b + 3u]);
-        }
-        for (; k < k_in; k++) {
-            a[k / 4u][k & 3u] = saved[base + k];
+// Row r's input to the layer (the network input, or the saved outputs of the layer below), zero past fan_in.
+fn layer_row(r: u32) -> array<vec4<f32>, K4> {
+    var a: array<vec4<f32>, K4>;
+    for (var k = 0u; k < L_IN; k++) {
+        if (L_FIRST) {
+            a[k / 4u][k & 3u] = input[r * L_IN + k];
+        } else {
+            a[k / 4u][k & 3u] = saved[r * SAVED_STRIDE + L_BELOW_SAVED + k];
         }
     }
     return a;
-}
-
-// Stores values ob .. ob + 8 (those below m) at base + ob: into saved, or into output.
-fn store8(base: u32, ob: u32, m: u32, v0: vec4<f32>, v1: vec4<f32>, to_saved: bool) {
-    let b = base + ob;
-    if (ob + 8u <= m) {
-        if (to_saved) {
-            saved[b] = v0.x; saved[b + 1u] = v0.y; saved[b + 2u] = v0.z; saved[b + 3u] = v0.w;
-            saved[b + 4u] = v1.x; saved[b + 5u] = v1.y; saved[b + 6u] = v1.z; saved[b + 7u] = v1.w;
-        } else {
-            output[b] = v0.x; output[b + 1u] = v0.y; output[b + 2u] = v0.z; output[b + 3u] = v0.w;
-            output[b + 4u] = v1.x; output[b + 5u] = v1.y; output[b + 6u] = v1.z; output[b + 7u] = v1.w;
-        }
-        return;
-    }
-    let v = array<f32, 8>(v0.x, v0.y, v0.z, v0.w, v1.x, v1.y, v1.z, v1.w);
-    for (var c = 0u; ob + c < m; c++) {
-        if (to_saved) {
-            saved[b + c] = v[c];
-        } else {
-            output[b + c] = v[c];
-        }
-    }
 }
 
 @compute @workgroup_size(64)
@@ -204,60 +145,29 @@ fn forward_layer(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) 
     if (first >= n) {
         return;
     }
-    let l = mlp.current;
-    stage_weights(l, li);
+    stage_weights(li);
     workgroupBarrier();
     let r = first + li;
     if (r >= n) {
         return;
     }
-    let d = mlp.layer[2u * l];
-    let so = mlp.layer[2u * l + 1u].y;
-    let k4 = (d.x + 3u) / 4u;
-    let m = d.y;
-    let last = l + 1u == mlp.layers;
-    let ss = mlp.saved_stride;
-    let a = layer_row(l, r);
-    // Eight outputs at a time: two vec4 accumulators, one private vec4 of inputs and eight broadcast
-    // weight vec4s per step.
-    for (var ob = 0u; ob < m; ob += 8u) {
-        var acc0 = bias4(l, ob);
-        var acc1 = bias4(l, ob + 4u);
-        for (var q = 0u; q < k4; q++) {
-            let v = a[q];
-            let w = ob * k4 + q;
-            acc0.x += dot(v, ws[w]);
-            acc0.y += dot(v, ws[w + k4]);
-            acc0.z += dot(v, ws[w + 2u * k4]);
-            acc0.w += dot(v, ws[w + 3u * k4]);
-            acc1.x += dot(v, ws[w + 4u * k4]);
-            acc1.y += dot(v, ws[w + 5u * k4]);
-            acc1.z += dot(v, ws[w + 6u * k4]);
-            acc1.w += dot(v, ws[w + 7u * k4]);
+    let a = layer_row(r);
+    // One output at a time: a private row of inputs against one broadcast weight row.
+    for (var j = 0u; j < L_OUT; j++) {
+        var acc = vec4<f32>(0.0);
+        for (var q = 0u; q < K4; q++) {
+            acc += a[q] * ws[j * K4 + q];
         }
-        // Outputs past fan_out (stale weight rows) are never stored.
-        if (!last) {
-            store8(r * ss + so, ob, m, max(acc0, vec4<f32>(0.0)), max(acc1, vec4<f32>(0.0)), true);
+        var y = params[L_B + j] + (acc.x + acc.y) + (acc.z + acc.w);
+        if (!L_LAST) {
+            y = max(y, 0.0);
+            saved[r * SAVED_STRIDE + L_SAVED + j] = y;
         } else {
-            if (mlp.output_act == ACT_SIGMOID) {
-                acc0 = sigmoid(acc0);
-                acc1 = sigmoid(acc1);
-                store8(r * ss + so, ob, m, acc0, acc1, true);
+            if (L_SIGMOID) {
+                y = sigmoid1(y);
+                saved[r * SAVED_STRIDE + L_SAVED + j] = y;
             }
-            store8(r * m, ob, m, acc0, acc1, false);
-        }
-    }
-}
-
-// Stores values kb .. kb + 8 (those below k_in) at base + kb: into the scratch deltas, or into dL/dinput.
-fn store_delta8(base: u32, kb: u32, k_in: u32, v0: vec4<f32>, v1: vec4<f32>, to_scratch: bool) {
-    let v = array<f32, 8>(v0.x, v0.y, v0.z, v0.w, v1.x, v1.y, v1.z, v1.w);
-    let b = base + kb;
-    for (var c = 0u; c < 8u && kb + c < k_in; c++) {
-        if (to_scratch) {
-            scratch[b + c] = v[c];
-        } else {
-            d_input[b + c] = v[c];
+            output[r * L_OUT + j] = y;
         }
     }
 }
@@ -270,155 +180,106 @@ fn backward_layer(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
     if (first >= n) {
         return;
     }
-    let l = mlp.current;
-    let d = mlp.layer[2u * l];
-    let e = mlp.layer[2u * l + 1u];
     // Layer 0's transposed product is dL/dinput: skipped when not asked for.
-    let product = l > 0u || (mlp.flags & FLAG_D_INPUT) != 0u;
+    let product = !L_FIRST || (mlp.flags & FLAG_D_INPUT) != 0u;
     if (product) {
-        stage_weights_transposed(l, li);
+        stage_weights_transposed(li);
     }
     workgroupBarrier();
     let r = first + li;
     if (r >= n) {
         return;
     }
-    let k_in = d.x;
-    let m = d.y;
-    let ss = mlp.saved_stride;
-    let ds = mlp.delta_stride;
-    var g: array<vec4<f32>, 16>;
-    if (l + 1u == mlp.layers) {
+    var g: array<vec4<f32>, M4>;
+    if (L_LAST) {
         // The output layer: delta = dL/dy * y (1 - y) under the sigmoid, dL/dy otherwise; kept for
         // backward_weights.
-        for (var j = 0u; j < m; j++) {
-            var v = d_output[r * m + j];
-            if (mlp.output_act == ACT_SIGMOID) {
-                let y = saved[r * ss + e.y + j];
+        for (var j = 0u; j < L_OUT; j++) {
+            var v = d_output[r * L_OUT + j];
+            if (L_SIGMOID) {
+                let y = saved[r * SAVED_STRIDE + L_SAVED + j];
                 v *= y * (1.0 - y);
             }
             g[j / 4u][j & 3u] = v;
-            scratch[r * ds + e.x + j] = v;
+            scratch[r * DELTA_STRIDE + L_DELTA + j] = v;
         }
     } else {
-        let b = r * ds + e.x;
-        var j = 0u;
-        for (; j + 4u <= m; j += 4u) {
-            g[j / 4u] = vec4<f32>(scratch[b + j], scratch[b + j + 1u], scratch[b + j + 2u], scratch[b + j + 3u]);
-        }
-        for (; j < m; j++) {
-            g[j / 4u][j & 3u] = scratch[b + j];
+        for (var j = 0u; j < L_OUT; j++) {
+            g[j / 4u][j & 3u] = scratch[r * DELTA_STRIDE + L_DELTA + j];
         }
     }
     if (!product) {
         return;
     }
-    let m4 = (m + 3u) / 4u;
-    // The layer below: its saved outputs give the ReLU mask, its delta slot takes the result.
-    var below = vec4<u32>(0u);
-    if (l > 0u) {
-        below = mlp.layer[2u * (l - 1u) + 1u];
-    }
-    for (var kb = 0u; kb < k_in; kb += 8u) {
-        var acc0 = vec4<f32>(0.0);
-        var acc1 = vec4<f32>(0.0);
-        for (var q = 0u; q < m4; q++) {
-            let v = g[q];
-            let w = kb * m4 + q;
-            acc0.x += dot(v, ws[w]);
-            acc0.y += dot(v, ws[w + m4]);
-            acc0.z += dot(v, ws[w + 2u * m4]);
-            acc0.w += dot(v, ws[w + 3u * m4]);
-            acc1.x += dot(v, ws[w + 4u * m4]);
-            acc1.y += dot(v, ws[w + 5u * m4]);
-            acc1.z += dot(v, ws[w + 6u * m4]);
-            acc1.w += dot(v, ws[w + 7u * m4]);
+    for (var k = 0u; k < L_IN; k++) {
+        var acc = vec4<f32>(0.0);
+        for (var q = 0u; q < M4; q++) {
+            acc += g[q] * ws[k * M4 + q];
         }
-        if (l > 0u) {
+        var v = (acc.x + acc.y) + (acc.z + acc.w);
+        if (!L_FIRST) {
             // ReLU': the unit was active iff its saved output is positive. select, not a product, so a
             // dead unit's gradient is exactly 0 even if the sum overflowed.
-            let s = r * ss + below.y + kb;
-            var on0 = vec4<bool>(false);
-            var on1 = vec4<bool>(false);
-            for (var c = 0u; c < 8u && kb + c < k_in; c++) {
-                let on = saved[s + c] > 0.0;
-                if (c < 4u) {
-                    on0[c] = on;
-                } else {
-                    on1[c & 3u] = on;
-                }
-            }
-            acc0 = select(vec4<f32>(0.0), acc0, on0);
-            acc1 = select(vec4<f32>(0.0), acc1, on1);
-            store_delta8(r * ds + below.x, kb, k_in, acc0, acc1, true);
+            v = select(0.0, v, saved[r * SAVED_STRIDE + L_BELOW_SAVED + k] > 0.0);
+            scratch[r * DELTA_STRIDE + L_BELOW_DELTA + k] = v;
         } else {
-            store_delta8(r * k_in, kb, k_in, acc0, acc1, false);
+            d_input[r * L_IN + k] = v;
         }
     }
 }
 
-// Input column k of layer l for row r, with the bias as column fan_in (constant 1) and zeros past it.
-fn layer_input(l: u32, r: u32, k: u32) -> f32 {
-    let k_in = mlp.layer[2u * l].x;
-    if (k < k_in) {
-        if (l == 0u) {
-            return input[r * k_in + k];
+// Input columns per backward_weights workgroup (WB, from the prelude), and the layer's blocks of them.
+const WB4: u32 = WB / 4u;
+const NB: u32 = max((L_IN + WB - 1u) / WB, 1u);
+
+// Row r's inputs kb + 4q .. kb + 4q + 4 (the network input or the saved outputs below), zero past fan_in.
+fn input4(r: u32, k: u32) -> vec4<f32> {
+    var v = vec4<f32>(0.0);
+    for (var c = 0u; c < 4u; c++) {
+        if (k + c < L_IN) {
+            if (L_FIRST) {
+                v[c] = input[r * L_IN + k + c];
+            } else {
+                v[c] = saved[r * SAVED_STRIDE + L_BELOW_SAVED + k + c];
+            }
         }
-        return saved[r * mlp.saved_stride + mlp.layer[2u * (l - 1u) + 1u].y + k];
     }
-    return select(0.0, 1.0, k == k_in);
+    return v;
 }
 
 @compute @workgroup_size(64)
 fn backward_weights(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                     @builtin(local_invocation_index) li: u32) {
     let gi = group_index(wg, nwg);
-    let blocks = mlp.blocks;
-    if (gi >= mlp.chunks * blocks) {
+    if (gi >= mlp.chunks * NB) {
         return;
     }
-    let chunk = gi / blocks;
-    let b = gi - chunk * blocks;
-    var l = 0u;
-    for (; l + 1u < mlp.layers; l++) {
-        let e = mlp.layer[2u * l + 1u];
-        if (b < e.z + e.w) {
-            break;
-        }
-    }
-    let d = mlp.layer[2u * l];
-    let e = mlp.layer[2u * l + 1u];
-    let k_in = d.x;
-    let kb = (b - e.z) * BLOCK;
+    let chunk = gi / NB;
+    let kb = (gi - chunk * NB) * WB;
     let j = li;
-    let lane_live = j < d.y;
+    let lane_live = j < L_OUT;
     let r0 = chunk * mlp.chunk_rows;
     let r1 = min(r0 + mlp.chunk_rows, mlp.n);
-    let ds = mlp.delta_stride;
-    var acc0 = vec4<f32>(0.0);
-    var acc1 = vec4<f32>(0.0);
-    var acc2 = vec4<f32>(0.0);
-    var acc3 = vec4<f32>(0.0);
+    var acc: array<vec4<f32>, WB4>;
+    var bias = 0.0;
     for (var t = r0; t < r1; t += TILE_ROWS) {
         let rows = min(TILE_ROWS, r1 - t);
         workgroupBarrier();
-        // tile[row * 4 + q] = inputs kb + 4q .. kb + 4q + 4 of row t + row: the same for every lane, so
-        // the sums below read them as broadcasts.
-        for (var s = li; s < rows * 4u; s += WG) {
-            let row = t + s / 4u;
-            let k = kb + 4u * (s & 3u);
-            tile[s] = vec4<f32>(layer_input(l, row, k), layer_input(l, row, k + 1u),
-                                layer_input(l, row, k + 2u), layer_input(l, row, k + 3u));
+        // tile[row * WB4 + q] = inputs kb + 4q .. kb + 4q + 4 of row t + row: the same for every lane,
+        // so the sums below read them as broadcasts.
+        for (var s = li; s < rows * WB4; s += WG) {
+            let row = s / WB4;
+            let q = s - row * WB4;
+            tile[s] = input4(t + row, kb + 4u * q);
         }
         workgroupBarrier();
         if (lane_live) {
             for (var rr = 0u; rr < rows; rr++) {
-                let dv = scratch[(t + rr) * ds + e.x + j];
-                let base = rr * 4u;
-                acc0 += dv * tile[base];
-                acc1 += dv * tile[base + 1u];
-                acc2 += dv * tile[base + 2u];
-                acc3 += dv * tile[base + 3u];
+                let dv = scratch[(t + rr) * DELTA_STRIDE + L_DELTA + j];
+                bias += dv;
+                for (var q = 0u; q < WB4; q++) {
+                    acc[q] += dv * tile[rr * WB4 + q];
+                }
             }
         }
     }
@@ -426,15 +287,14 @@ fn backward_weights(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroup
         return;
     }
     let out = mlp.partial_offset + chunk * mlp.n_params;
-    let v = array<f32, 16>(acc0.x, acc0.y, acc0.z, acc0.w, acc1.x, acc1.y, acc1.z, acc1.w,
-                           acc2.x, acc2.y, acc2.z, acc2.w, acc3.x, acc3.y, acc3.z, acc3.w);
-    for (var c = 0u; c < BLOCK && kb + c <= k_in; c++) {
+    for (var c = 0u; c < WB; c++) {
         let k = kb + c;
-        if (k < k_in) {
-            scratch[out + d.z + j * k_in + k] = v[c];
-        } else {
-            scratch[out + d.w + j] = v[c];
+        if (k < L_IN) {
+            scratch[out + L_W + j * L_IN + k] = acc[c / 4u][c & 3u];
         }
+    }
+    if (kb == 0u) {
+        scratch[out + L_B + j] = bias;
     }
 }
 

@@ -164,6 +164,13 @@ enum Command {
         /// Stop after this many seconds even if the target is not reached.
         #[arg(long, default_value_t = 300.0)]
         max_seconds: f64,
+        /// Time every GPU pass of the WGSL step (timestamp queries, or timed submits where the adapter
+        /// has none) and print time and bound bytes per pass per step; implies --backend wgpu.
+        #[arg(long)]
+        profile: bool,
+        /// Steps timed by --profile (after the warm-up).
+        #[arg(long, default_value_t = 10)]
+        profile_steps: u32,
     },
     /// Proposal networks vs an Instant-NGP occupancy grid for placing the final samples: the same training
     /// on the CPU reference with each; wall time, PSNR curve, held-out PSNR, geometry when GT is present.
@@ -201,6 +208,11 @@ enum Command {
         /// for `default`).
         #[arg(long)]
         uncertainty_batches: Option<usize>,
+        /// Engine of every stage (training, renders, export, uncertainty): `wgpu` the WGSL engine on any
+        /// adapter (lavapipe included), `cpu` the rayon reference, `auto` WGSL on a hardware GPU and the CPU
+        /// where the only adapter is a software one.
+        #[arg(long, default_value = "auto")]
+        backend: String,
     },
 }
 
@@ -335,6 +347,7 @@ fn main() {
             downscale,
             reuse_dataset,
             uncertainty_batches,
+            backend,
         } => demo(
             preset.as_deref(),
             seed,
@@ -345,6 +358,7 @@ fn main() {
                 rays,
                 downscale,
                 uncertainty_batches,
+                backend,
             },
             reuse_dataset,
         ),
@@ -357,6 +371,8 @@ fn main() {
             steps,
             target_psnr,
             max_seconds,
+            profile,
+            profile_steps,
         } => train::bench(&train::BenchArgs {
             dataset,
             mode,
@@ -366,6 +382,7 @@ fn main() {
             steps,
             target_psnr,
             max_seconds,
+            profile: profile.then_some(profile_steps),
         }),
         Command::BenchSampler(a) => train::bench_sampler(&a),
         Command::Bench { points, reps, json } => bench(points, reps, json),
@@ -591,6 +608,7 @@ struct DemoTraining {
     rays: Option<usize>,
     downscale: u32,
     uncertainty_batches: Option<usize>,
+    backend: String,
 }
 
 /// Whether `dataset` was generated from exactly `preset` (its manifest records the preset).
@@ -678,7 +696,7 @@ fn demo(
             out: dir.clone(),
             resume: None,
             checkpoint_every: 0,
-            backend: "auto".into(),
+            backend: overrides.backend.clone(),
             downscale: overrides.downscale,
             seed,
             export_rays: demo_export_rays(name),
@@ -729,6 +747,7 @@ fn demo(
             "model": model,
             "downscale": overrides.downscale,
             "backend": summary.backend,
+            "backends": summary.stages,
             "adapter": summary.adapter,
         });
         eprintln!(
@@ -737,12 +756,15 @@ fn demo(
         );
         rows.push((key.to_string(), ev.report));
     }
-    // The WGSL training step against the CPU reference on this dataset (when training ran on the CPU
-    // fallback, this is where the demo exercises the engine's kernels).
-    let check = train::crosscheck(&dataset, model, 256)?;
+    // The WGSL training step against the CPU reference on this dataset, from the trained SiLVR field
+    // (not its initialisation): losses and gradients of one batch on both engines.
+    let check = train::crosscheck(&dataset, &out.join("silvr").join("checkpoint.ckpt"), 1024)?;
     eprintln!("[demo] WGSL step vs CPU reference: {check}");
     let max_diff = check["max_rel_grad_diff"].as_f64().unwrap_or(f64::INFINITY);
-    if max_diff > 1e-2 {
+    let loss_diff = check["loss_rel_diff"].as_f64().unwrap_or(f64::INFINITY);
+    // Gradients within 1 % of each tensor's largest and the loss within 0.1 %: the CAS-atomic sums of
+    // the hash-grid gradients add in another order than the CPU's, nothing else differs.
+    if max_diff > 1e-2 || loss_diff > 1e-3 {
         anyhow::bail!(
             "the WGSL training step disagrees with the CPU reference on {}: {check}",
             dataset.display()

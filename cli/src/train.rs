@@ -86,14 +86,21 @@ pub struct TrainSummary {
     /// The adapter (or, on the CPU, why the CPU).
     pub adapter: String,
     pub uncertainty: Option<crate::uncertainty::UncertaintySummary>,
+    /// The engine each stage ran on (`wgpu` or `cpu`): training, renders, export, uncertainty.
+    pub stages: serde_json::Value,
 }
 
 /// `--backend`: `wgpu` forces the WGSL engine (on any adapter, lavapipe included), `cpu` the rayon
 /// reference; `auto` takes the WGSL engine on a hardware GPU and the CPU reference where the only adapter
 /// is a software one (lavapipe runs the same kernels ~10x slower than the CPU reference).
 pub fn backend_for(backend: &str) -> Result<(Backend, String)> {
+    backend_with(backend, GpuOptions::default())
+}
+
+/// [`backend_for`] with the device opened with `options` (e.g. profiling).
+pub fn backend_with(backend: &str, options: GpuOptions) -> Result<(Backend, String)> {
     let open = || {
-        pollster::block_on(Gpu::new(GpuOptions::default()))
+        pollster::block_on(Gpu::new(options.clone()))
             .context("--backend wgpu needs a WebGPU adapter")
     };
     match backend {
@@ -103,7 +110,7 @@ pub fn backend_for(backend: &str) -> Result<(Backend, String)> {
             let name = g.report().to_string();
             Ok((Backend::Wgpu(g), name))
         }
-        "auto" => match pollster::block_on(Gpu::new(GpuOptions::default())) {
+        "auto" => match pollster::block_on(Gpu::new(options.clone())) {
             Ok(g) if !g.report().software => {
                 let name = g.report().to_string();
                 Ok((Backend::Wgpu(g), name))
@@ -220,6 +227,7 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         }
     }
     let train_s = t0.elapsed().as_secs_f64();
+    let mut stages = serde_json::json!({ "training": trainer.engine.name() });
     pollster::block_on(trainer.checkpoint())?.save(&ckpt)?;
     let recent = &trainer.history[trainer.history.len().saturating_sub(20)..];
     let mse = recent.iter().map(|s| s.rgb_mse).sum::<f64>() / recent.len().max(1) as f64;
@@ -246,6 +254,9 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         }
         views.push(score);
     }
+    if !views.is_empty() {
+        stages["renders"] = trainer.engine.name().into();
+    }
     let points = if a.export_rays > 0 {
         let cloud = pollster::block_on(trainer.export_points(
             a.export_rays,
@@ -255,17 +266,17 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         ))?;
         let p = a.out.join("points.ply");
         silvr_core::pointcloud::write_ply(&p, &cloud)?;
+        stages["export"] = trainer.engine.name().into();
         Some(p)
     } else {
         None
     };
     let uncertainty = match &a.uncertainty {
-        Some(cfg) => Some(crate::uncertainty::annotate(
-            &mut trainer,
-            cfg,
-            &a.out,
-            a.quiet,
-        )?),
+        Some(cfg) => {
+            let u = crate::uncertainty::annotate(&mut trainer, cfg, &a.out, a.quiet)?;
+            stages["uncertainty"] = trainer.engine.name().into();
+            Some(u)
+        }
         None => None,
     };
     let summary = TrainSummary {
@@ -277,6 +288,7 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         points,
         backend,
         adapter,
+        stages,
     };
     let json = serde_json::json!({
         "mode": trainer.config.mode.name(),
@@ -284,6 +296,7 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         "steps": summary.steps,
         "train_s": summary.train_s,
         "backend": summary.backend,
+        "backends": summary.stages,
         "adapter": summary.adapter,
         "train_psnr_last20": summary.final_psnr_train,
         "heldout": summary.views,
@@ -337,6 +350,8 @@ pub struct BenchArgs {
     pub steps: u32,
     pub target_psnr: f64,
     pub max_seconds: f64,
+    /// Steps to profile pass by pass (WGSL only), after a warm-up.
+    pub profile: Option<u32>,
 }
 
 fn new_trainer(
@@ -373,6 +388,9 @@ fn new_trainer(
 /// `silvr bench-train`: per-step timings (each step ends with its loss readback, so a step's time is the
 /// device's), field evaluations per second, and the time to a training PSNR.
 pub fn bench(a: &BenchArgs) -> Result<()> {
+    if let Some(steps) = a.profile {
+        return profile(a, steps);
+    }
     let (backend, adapter) = backend_for(&a.backend)?;
     let mut t = new_trainer(&a.dataset, a.mode, &a.model, a.rays, a.steps, backend)?;
     let m = &t.model;
@@ -414,6 +432,22 @@ pub fn bench(a: &BenchArgs) -> Result<()> {
     let median = sorted.get(sorted.len() / 2).copied().unwrap_or(f64::NAN);
     let last = &t.history[t.history.len().saturating_sub(20)..];
     let mse = last.iter().map(|s| s.rgb_mse).sum::<f64>() / last.len().max(1) as f64;
+    // Inference on the same backend: the first held-out view (or a training view) rendered whole, once
+    // to warm up its pipelines on a small part, then timed.
+    let view = t.data.val.first().or(t.data.train.first()).copied();
+    let render = match view {
+        Some(i) => {
+            let (rays, _) = t.view_rays(i);
+            pollster::block_on(t.render(&rays[..rays.len().min(256)], false))?;
+            let tr = Instant::now();
+            pollster::block_on(t.render(&rays, false))?;
+            let s = tr.elapsed().as_secs_f64();
+            Some((rays.len(), s))
+        }
+        None => None,
+    };
+    let rays_per_s = a.rays as f64 / median;
+    let render_rays_per_s = render.map(|(n, s)| n as f64 / s);
     let v = serde_json::json!({
         "backend": adapter,
         "dataset": a.dataset,
@@ -422,8 +456,11 @@ pub fn bench(a: &BenchArgs) -> Result<()> {
         "rays_per_batch": a.rays,
         "steps": t.step,
         "median_step_s": median,
-        "rays_per_s": a.rays as f64 / median,
+        "rays_per_s": rays_per_s,
         "field_samples_per_s": tot_e as f64 / tot_s,
+        "render_rays": render.map(|r| r.0),
+        "render_rays_per_s": render_rays_per_s,
+        "render_vs_training_rays": render_rays_per_s.map(|r| r / rays_per_s),
         "target_psnr": a.target_psnr,
         "reached_at_step": reached.map(|r| r.0),
         "time_to_target_s": reached.map(|r| r.1),
@@ -435,14 +472,100 @@ pub fn bench(a: &BenchArgs) -> Result<()> {
     Ok(())
 }
 
-/// The WGSL engine's step against the CPU reference on one batch of this dataset (same parameters,
-/// same rays): the largest gradient difference relative to each tensor's largest gradient, and the loss
-/// of each. Run by the demo so that the engine it ships is checked on the data it reports.
-pub fn crosscheck(dataset: &Path, model: &str, rays: usize) -> Result<serde_json::Value> {
+/// `silvr bench-train --profile`: the WGSL step pass by pass. Three warm-up steps (pipeline compiles,
+/// buffer allocation), then `steps` steps timed per pass; prints a table (stderr) and JSON (stdout) with
+/// time and bound bytes per pass per step beside the step's wall time.
+fn profile(a: &BenchArgs, steps: u32) -> Result<()> {
+    if a.backend == "cpu" {
+        bail!("--profile times the WGSL engine's GPU passes; use --backend wgpu (or auto)");
+    }
+    let options = GpuOptions {
+        profile: true,
+        ..Default::default()
+    };
+    let (backend, adapter) = backend_with("wgpu", options)?;
+    let steps = steps.max(1);
+    let mut t = new_trainer(&a.dataset, a.mode, &a.model, a.rays, 3 + steps, backend)?;
+    let silvr_core::train::Engine::Wgpu(engine) = &t.engine else {
+        bail!("the profile needs the WGSL engine");
+    };
+    let gpu = engine.gpu.clone();
+    let mode = gpu.profiling().context("profiling is off on this device")?;
+    for _ in 0..3 {
+        pollster::block_on(t.train_step())?;
+    }
+    gpu.profile_take();
+    let t0 = Instant::now();
+    for _ in 0..steps {
+        pollster::block_on(t.train_step())?;
+    }
+    let wall = t0.elapsed().as_secs_f64() / steps as f64;
+    let rows = gpu.profile_take();
+    let total: f64 = rows.iter().map(|r| r.seconds).sum::<f64>() / steps as f64;
+    eprintln!(
+        "{} model, {} rays, {:?} on {adapter}: step {:.1} ms wall, {:.1} ms in passes",
+        a.model,
+        a.rays,
+        mode,
+        wall * 1e3,
+        total * 1e3
+    );
+    eprintln!(
+        "{:<22} {:<32} {:>6} {:>10} {:>6} {:>10}",
+        "scope", "pass", "calls", "ms/step", "%", "MB bound"
+    );
+    let mut out = Vec::new();
+    for r in &rows {
+        let ms = r.seconds / steps as f64 * 1e3;
+        let mb = r.bytes_bound as f64 / steps as f64 / 1e6;
+        eprintln!(
+            "{:<22} {:<32} {:>6} {:>10.2} {:>6.1} {:>10.1}",
+            r.scope,
+            r.pass,
+            r.calls / steps as u64,
+            ms,
+            100.0 * r.seconds / steps as f64 / total.max(1e-12),
+            mb
+        );
+        out.push(serde_json::json!({
+            "scope": r.scope, "pass": r.pass, "calls_per_step": r.calls as f64 / steps as f64,
+            "ms_per_step": ms, "mb_bound_per_step": mb,
+        }));
+    }
+    let v = serde_json::json!({
+        "backend": adapter,
+        "timing": mode,
+        "model": a.model,
+        "mode": a.mode.name(),
+        "rays_per_batch": a.rays,
+        "steps_profiled": steps,
+        "step_wall_ms": wall * 1e3,
+        "passes_ms": total * 1e3,
+        "passes": out,
+        "note": "bytes bound: the sizes of the buffers each pass binds, an upper bound on what it reads and writes",
+    });
+    println!("{}", serde_json::to_string_pretty(&v)?);
+    Ok(())
+}
+
+/// The WGSL engine's step against the CPU reference on one batch of this dataset, from a trained field's
+/// checkpoint (same parameters, same rays, the batch and schedule of the checkpoint's step): the loss of
+/// each, and per tensor the largest gradient difference relative to that tensor's largest gradient. Run
+/// by the demo so that the engine it ships is checked on the data it reports, after training.
+pub fn crosscheck(dataset: &Path, checkpoint: &Path, rays: usize) -> Result<serde_json::Value> {
     let gpu = pollster::block_on(Gpu::new(GpuOptions::default()))?;
-    let t = new_trainer(dataset, Mode::Silvr, model, rays, 1000, Backend::Cpu)?;
-    let batch = t.batch(0);
-    let sch = t.schedule(0);
+    let ck = Checkpoint::load(checkpoint)?;
+    let data = TrainData::load(
+        dataset,
+        &LoadOptions {
+            downscale: 1,
+            skip_lidar: ck.header.config.mode == Mode::Vision,
+        },
+    )?;
+    let mut t = Trainer::resume(data, ck, Backend::Cpu)?;
+    t.config.rays_per_batch = rays;
+    let batch = t.batch(t.step);
+    let sch = t.schedule(t.step);
     let (g_cpu, s_cpu) = silvr_core::train::cpu::train_step(&t.model, &t.params, &batch, &sch)?;
     let mut eng = silvr_core::train::gpu::GpuEngine::new(
         gpu.clone(),
@@ -454,21 +577,30 @@ pub fn crosscheck(dataset: &Path, model: &str, rays: usize) -> Result<serde_json
     let s_gpu = pollster::block_on(eng.step(&batch, &sch, &t.config.adam, 1e-2, 1, false))?;
     let g_gpu = pollster::block_on(eng.download_grads())?;
     let mut worst = 0.0f64;
-    for (a, b) in g_gpu.iter().zip(&g_cpu) {
+    let mut per_tensor = serde_json::Map::new();
+    for ((a, b), name) in g_gpu.iter().zip(&g_cpu).zip(&t.params.names) {
         let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-12) as f64;
+        let mut w = 0.0f64;
         for (x, y) in a.iter().zip(b) {
-            worst = worst.max(((x - y).abs() as f64 / scale).min(f64::MAX));
+            w = w.max(((x - y).abs() as f64 / scale).min(f64::MAX));
             if !x.is_finite() {
-                worst = f64::INFINITY;
+                w = f64::INFINITY;
             }
         }
+        per_tensor.insert(name.clone(), w.into());
+        worst = worst.max(w);
     }
+    let loss_rel = (s_gpu.loss - s_cpu.loss).abs() / s_cpu.loss.abs().max(1e-12);
     Ok(serde_json::json!({
         "adapter": gpu.report().to_string(),
+        "checkpoint": checkpoint,
+        "step": t.step,
         "rays": batch.rays.len(),
         "loss_cpu": s_cpu.loss,
         "loss_wgsl": s_gpu.loss,
+        "loss_rel_diff": loss_rel,
         "max_rel_grad_diff": worst,
+        "rel_grad_diff": per_tensor,
     }))
 }
 

@@ -135,6 +135,44 @@ fn backward_matches_cpu() {
     }
 }
 
+/// Positions as a trainer lays them out: runs of consecutive samples along rays (and points crowded into
+/// a few cells), so that one `backward_params` thread sums several points of one cell before its atomic
+/// adds, and runs end mid-cell, at cell changes and at the batch's end.
+#[test]
+fn backward_of_ray_samples_matches_cpu() {
+    let Some(gpu) = gpu() else { return };
+    let mut rng = Xoshiro256PlusPlus::seed_from_u64(77);
+    for (k, cfg) in configs().into_iter().enumerate() {
+        let layout = HashGridLayout::new(&cfg).unwrap();
+        let params = random_values(600 + k as u64, layout.n_params());
+        let mut pos = Vec::new();
+        // 37 rays of 24 samples with steps from a thousandth (many points per cell) to a tenth of the box,
+        // then 13 points at one spot (every level's same cell), then a ragged tail.
+        for r in 0..37 {
+            let o: [f32; 3] = [0, 1, 2].map(|_| rng.random_range(0.1..0.9f32));
+            let d: [f32; 3] = [0, 1, 2].map(|_| rng.random_range(-1.0..1.0f32));
+            let step = [1e-3f32, 1e-2, 0.05, 0.1][r % 4];
+            for i in 0..24 {
+                pos.push([0, 1, 2].map(|a| (o[a] + d[a] * step * i as f32).clamp(0.0, 1.0)));
+            }
+        }
+        pos.extend(std::iter::repeat_n([0.31f32, 0.52, 0.77], 13));
+        pos.extend(random_positions(700 + k as u64, 5));
+        let dfeat = random_values(800 + k as u64, pos.len() * layout.output_dim());
+        let g = pollster::block_on(backward_gpu(&gpu, &cfg, &params, &pos, &dfeat, false)).unwrap();
+        let c = backward_cpu(&cfg, &params, &pos, &dfeat, false).unwrap();
+        let scale = backward_cpu(&cfg, &params, &pos, &abs(&dfeat), false).unwrap();
+        let err = scaled_error(&g.params, &c.params, &scale.params, 1e-6);
+        eprintln!("ray-sample backward {cfg:?}: params scaled error {err:.2e}");
+        assert!(err < 1e-4, "{cfg:?}: {err}");
+        for (i, (&gv, &s)) in g.params.iter().zip(&scale.params).enumerate() {
+            if s == 0.0 {
+                assert_eq!(gv, 0.0, "{cfg:?}: untouched param {i}");
+            }
+        }
+    }
+}
+
 /// An independent f64 forward (same layout, through the public vertex-index functions), so finite
 /// differences are free of f32 rounding and check the f32 gradients to their own precision. With
 /// `f32_cell`, the position in vertex units is rounded to f32 first, as the kernels do: the weights then

@@ -18,8 +18,9 @@
 //! layout is identical on every platform, the browser included; positions are clamped to [0, 1]³ (tcnn
 //! does not clamp; contracted positions never leave the cube), and dL/dx is zero along a clamped axis.
 //!
-//! Kernels: `encode` and `backward_params` run one thread per (level, position), level-major so a workgroup
-//! shares one level's metadata and dense/hashed branch; `backward_pos` runs one thread per position over all
+//! Kernels: `encode` runs one thread per (level, position), level-major so a workgroup shares one level's
+//! metadata and dense/hashed branch; `backward_params` one thread per (level, [`MERGE_RUN`] consecutive
+//! positions), summing what they add to a cell before its atomic adds; `backward_pos` runs one thread per position over all
 //! levels, so dL/dx needs no atomics. GPU parameter gradients are summed with compare-exchange float adds
 //! (WebGPU has no `atomic<f32>`), so their order, and with it the last bits, varies from run to run; the
 //! CPU reference is deterministic. [`encode_gpu`] and [`backward_gpu`] take host slices; the `record_*`
@@ -487,7 +488,18 @@ struct LevelGpu {
 struct GridUniform {
     /// n, levels, features, parameter words.
     dims: [u32; 4],
+    /// backward_params' merge window (points per thread), padding.
+    run: [u32; 4],
     levels: [LevelGpu; MAX_LEVELS as usize],
+}
+
+/// Consecutive points one `backward_params` thread sums before its atomic adds: consecutive samples of a
+/// ray share cells at the coarse levels, where every thread of the batch would otherwise contend.
+pub const MERGE_RUN: u32 = 8;
+
+/// The WGSL prelude of a grid's pipelines: features per level as a constant.
+fn prelude(layout: &HashGridLayout) -> String {
+    format!("const NF: u32 = {}u;\n", layout.config.features_per_level)
 }
 
 fn uniform_for(layout: &HashGridLayout, n: u32) -> GridUniform {
@@ -498,6 +510,7 @@ fn uniform_for(layout: &HashGridLayout, n: u32) -> GridUniform {
             layout.config.features_per_level,
             layout.n_params() as u32,
         ],
+        run: [MERGE_RUN, 0, 0, 0],
         levels: [LevelGpu::zeroed(); MAX_LEVELS as usize],
     };
     for (dst, lv) in u.levels.iter_mut().zip(&layout.levels) {
@@ -562,9 +575,10 @@ pub async fn record_encode(
         return Ok(());
     }
     let u = gpu.uniform("hashgrid.grid", &uniform_for(layout, n));
-    gpu.dispatch(
+    gpu.dispatch_variant(
         encoder,
         &KERNEL,
+        &prelude(layout),
         "encode",
         &[(0, &u), (1, params), (2, positions.buffer), (3, features)],
         threads,
@@ -584,15 +598,16 @@ pub async fn record_backward_params(
     accumulate: bool,
 ) -> Result<(), GpuError> {
     let n = positions.n;
-    let threads = level_point_threads(layout, n)?;
+    level_point_threads(layout, n)?;
     need(positions.buffer, n as usize * 3, "position")?;
     need(d_features, n as usize * layout.output_dim(), "dL/dfeatures")?;
     need(d_params, layout.n_params(), "dL/dparams")?;
     let u = gpu.uniform("hashgrid.grid", &uniform_for(layout, n));
     if !accumulate {
-        gpu.dispatch(
+        gpu.dispatch_variant(
             encoder,
             &KERNEL,
+            &prelude(layout),
             "clear_grad",
             &[(0, &u), (7, d_params)],
             layout.n_params() as u32 / 4,
@@ -602,9 +617,11 @@ pub async fn record_backward_params(
     if n == 0 {
         return Ok(());
     }
-    gpu.dispatch(
+    let threads = n.div_ceil(MERGE_RUN) * layout.config.levels;
+    gpu.dispatch_variant(
         encoder,
         &KERNEL,
+        &prelude(layout),
         "backward_params",
         &[
             (0, &u),
@@ -636,9 +653,10 @@ pub async fn record_backward_positions(
         return Ok(());
     }
     let u = gpu.uniform("hashgrid.grid", &uniform_for(layout, n));
-    gpu.dispatch(
+    gpu.dispatch_variant(
         encoder,
         &KERNEL,
+        &prelude(layout),
         "backward_pos",
         &[
             (0, &u),

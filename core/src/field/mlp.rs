@@ -49,8 +49,9 @@ pub const MAX_HIDDEN_LAYERS: usize = 8;
 pub const CHUNK_ROWS: usize = 256;
 
 const WORKGROUP: u32 = 64;
-/// Input columns per parameter-gradient workgroup (the bias counts as one more column).
-const BLOCK: usize = 16;
+/// Most input columns per parameter-gradient workgroup (`WB` in mlp.wgsl; 16 and 64 were slower on
+/// lavapipe: more passes over the deltas, or accumulators spilled).
+const BLOCK: usize = 32;
 const MAX_LAYERS: usize = MAX_HIDDEN_LAYERS + 1;
 
 const KERNEL: Kernel = Kernel {
@@ -748,13 +749,16 @@ struct MlpUniform {
     layer: [[u32; 4]; 2 * MAX_LAYERS],
 }
 
-/// Parameter-gradient workgroups for one layer and chunk: its input columns plus the bias, 16 at a time.
-fn layer_blocks(layer: &LayerInfo) -> usize {
-    (layer.fan_in + 1).div_ceil(BLOCK)
+/// Input columns per parameter-gradient workgroup of `layer`: [`BLOCK`], or fewer (a multiple of 4) for
+/// a narrower layer, so no workgroup sums columns that do not exist.
+fn layer_block(layer: &LayerInfo) -> usize {
+    BLOCK.min(layer.fan_in.next_multiple_of(4)).max(4)
 }
 
-fn weight_blocks(cfg: &MlpConfig) -> usize {
-    cfg.layers().iter().map(layer_blocks).sum()
+/// Parameter-gradient workgroups for one layer and chunk: its input columns [`layer_block`] at a time
+/// (the first also sums the bias).
+fn layer_blocks(layer: &LayerInfo) -> usize {
+    layer.fan_in.div_ceil(layer_block(layer)).max(1)
 }
 
 fn uniform_for(cfg: &MlpConfig, n: u32, flags: u32, current: usize) -> MlpUniform {
@@ -783,6 +787,47 @@ fn uniform_for(cfg: &MlpConfig, n: u32, flags: u32, current: usize) -> MlpUnifor
     ]
     .map(|v| v as u32);
     u
+}
+
+/// WGSL constants that specialise `forward_layer` / `backward_layer` to layer `l` of `cfg` (see the header
+/// of mlp.wgsl); `None` gives the neutral prelude the shape-independent entry points compile with.
+fn layer_prelude(cfg: &MlpConfig, l: Option<usize>) -> String {
+    let layers = cfg.layers();
+    let (ly, below) = match l {
+        Some(l) => (layers[l], l.checked_sub(1).map(|b| layers[b])),
+        None => (
+            LayerInfo {
+                fan_in: 0,
+                fan_out: 0,
+                weights: 0,
+                bias: 0,
+                saved: 0,
+                delta: 0,
+            },
+            None,
+        ),
+    };
+    let last = l == Some(cfg.n_layers() - 1);
+    format!(
+        "const L_IN: u32 = {}u;\nconst L_OUT: u32 = {}u;\nconst L_W: u32 = {}u;\nconst L_B: u32 = {}u;\n\
+         const L_SAVED: u32 = {}u;\nconst L_DELTA: u32 = {}u;\nconst L_FIRST: bool = {};\nconst L_LAST: bool = {};\n\
+         const L_SIGMOID: bool = {};\nconst L_BELOW_SAVED: u32 = {}u;\nconst L_BELOW_DELTA: u32 = {}u;\n\
+         const SAVED_STRIDE: u32 = {}u;\nconst DELTA_STRIDE: u32 = {}u;\nconst WB: u32 = {}u;\n",
+        ly.fan_in,
+        ly.fan_out,
+        ly.weights,
+        ly.bias,
+        ly.saved,
+        ly.delta,
+        l == Some(0),
+        last,
+        last && cfg.output_activation == Activation::Sigmoid,
+        below.map_or(0, |b| b.saved),
+        below.map_or(0, |b| b.delta),
+        cfg.saved_per_row(),
+        cfg.delta_per_row(),
+        layer_block(&ly),
+    )
 }
 
 fn need(buffer: &wgpu::Buffer, words: usize, what: &str) -> Result<(), GpuError> {
@@ -868,9 +913,10 @@ pub async fn record_forward(
     }
     for l in 0..config.n_layers() {
         let u = gpu.uniform("mlp.uniform", &uniform_for(config, n, 0, l));
-        gpu.dispatch(
+        gpu.dispatch_variant(
             encoder,
             &KERNEL,
+            &layer_prelude(config, Some(l)),
             "forward_layer",
             &[
                 (0, &u),
@@ -934,9 +980,10 @@ pub async fn record_backward(
         };
         for l in (0..config.n_layers()).rev() {
             let ul = gpu.uniform("mlp.uniform", &uniform_for(config, n, flags, l));
-            gpu.dispatch(
+            gpu.dispatch_variant(
                 encoder,
                 &KERNEL,
+                &layer_prelude(config, Some(l)),
                 "backward_layer",
                 &[
                     (0, &ul),
@@ -950,24 +997,28 @@ pub async fn record_backward(
             )
             .await?;
         }
-        let groups = MlpConfig::chunks(rows) as u32 * weight_blocks(config) as u32;
-        gpu.dispatch(
-            encoder,
-            &KERNEL,
-            "backward_weights",
-            &[
-                (0, &u),
-                (2, buffers.input),
-                (4, buffers.saved),
-                (6, buffers.scratch),
-            ],
-            groups * WORKGROUP,
-        )
-        .await?;
+        for (l, ly) in config.layers().iter().enumerate() {
+            let groups = MlpConfig::chunks(rows) as u32 * layer_blocks(ly) as u32;
+            gpu.dispatch_variant(
+                encoder,
+                &KERNEL,
+                &layer_prelude(config, Some(l)),
+                "backward_weights",
+                &[
+                    (0, &u),
+                    (2, buffers.input),
+                    (4, buffers.saved),
+                    (6, buffers.scratch),
+                ],
+                groups * WORKGROUP,
+            )
+            .await?;
+        }
     }
-    gpu.dispatch(
+    gpu.dispatch_variant(
         encoder,
         &KERNEL,
+        &layer_prelude(config, None),
         "reduce_grads",
         &[(0, &u), (6, buffers.scratch), (7, buffers.d_params)],
         config.n_params() as u32,

@@ -6,6 +6,8 @@ use std::sync::{Arc, Mutex};
 
 use serde::Serialize;
 
+use super::profile::{ProfileMode, Profiler, ProfilerState, MAX_QUERIES};
+
 /// The limits every SiLVR kernel is written against: WebGPU's defaults, which every browser grants.
 /// Storage-buffer sizes are raised to what the adapter offers at device creation.
 pub const BASELINE: Baseline = Baseline {
@@ -64,6 +66,9 @@ pub struct GpuOptions {
     /// Fill every buffer a kernel writes with this 32-bit pattern before it runs. Tests set it so that a
     /// kernel which forgets to write an element is caught, instead of being hidden by zero-initialised memory.
     pub poison: Option<u32>,
+    /// Time every compute pass (see [`super::profile`]): timestamp queries where the adapter has them,
+    /// otherwise timed submits (native only). For benchmarks; it costs a query pair or a wait per pass.
+    pub profile: bool,
 }
 
 /// What adapter we run on, for logs, the CLI's `gpu-info`, the studio page and benchmark records.
@@ -105,6 +110,7 @@ pub struct Gpu {
     report: Arc<AdapterReport>,
     pub(super) poison: Option<u32>,
     pub(super) pipelines: Arc<Mutex<HashMap<String, wgpu::ComputePipeline>>>,
+    pub(super) profiler: Profiler,
 }
 
 impl fmt::Debug for Gpu {
@@ -148,10 +154,17 @@ impl Gpu {
             max_buffer_size: have.max_buffer_size,
             ..Default::default()
         };
+        let timestamps =
+            options.profile && adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY);
+        let required_features = if timestamps {
+            wgpu::Features::TIMESTAMP_QUERY
+        } else {
+            wgpu::Features::empty()
+        };
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("silvr"),
-                required_features: wgpu::Features::empty(),
+                required_features,
                 required_limits: limits,
                 ..Default::default()
             })
@@ -163,18 +176,66 @@ impl Gpu {
         device.on_uncaptured_error(Arc::new(|e| {
             log::error!("uncaptured wgpu error: {e}");
         }));
+        let profiler = match (options.profile, timestamps) {
+            (false, _) => None,
+            (true, true) => {
+                let qs = device.create_query_set(&wgpu::QuerySetDescriptor {
+                    label: Some("profile"),
+                    ty: wgpu::QueryType::Timestamp,
+                    count: MAX_QUERIES,
+                });
+                Some(ProfilerState::new(ProfileMode::Timestamps, Some(qs)))
+            }
+            (true, false) if cfg!(not(target_arch = "wasm32")) => {
+                Some(ProfilerState::new(ProfileMode::TimedSubmits, None))
+            }
+            (true, false) => None,
+        };
         Ok(Self {
             device,
             queue,
             report: Arc::new(report),
             poison: options.poison,
             pipelines: Arc::new(Mutex::new(HashMap::new())),
+            profiler: Arc::new(Mutex::new(profiler)),
         })
     }
 
     /// The adapter this device was opened on.
     pub fn report(&self) -> &AdapterReport {
         &self.report
+    }
+
+    /// How passes are timed, when this device was opened with [`GpuOptions::profile`].
+    pub fn profiling(&self) -> Option<ProfileMode> {
+        self.profiler
+            .lock()
+            .expect("profiler poisoned")
+            .as_ref()
+            .map(|p| p.mode)
+    }
+
+    /// Names the part of the work the next passes belong to (a no-op unless profiling).
+    pub fn profile_scope(&self, scope: &str) {
+        if let Some(p) = self.profiler.lock().expect("profiler poisoned").as_mut() {
+            if p.scope != scope {
+                p.scope = scope.to_string();
+            }
+        }
+    }
+
+    /// The passes timed since the last call (timestamps are resolved at each readback), in first-seen
+    /// order; the totals start again from zero.
+    pub fn profile_take(&self) -> Vec<super::profile::PassRow> {
+        match self.profiler.lock().expect("profiler poisoned").as_mut() {
+            Some(p) => {
+                let rows = p.rows();
+                p.totals.clear();
+                p.order.clear();
+                rows
+            }
+            None => Vec::new(),
+        }
     }
 
     /// Largest storage binding this device accepts, in bytes.

@@ -6,6 +6,7 @@ use bytemuck::Pod;
 use wgpu::util::DeviceExt;
 
 use super::context::{Gpu, GpuError};
+use super::profile::{ProfileMode, MAX_QUERIES};
 
 /// WebGPU's `maxComputeWorkgroupsPerDimension` default; larger dispatches are folded into 2-D.
 pub const MAX_WORKGROUPS_PER_DIM: u32 = 65_535;
@@ -19,6 +20,20 @@ pub struct Kernel {
     pub name: &'static str,
     pub source: &'static str,
     pub workgroup_size: u32,
+}
+
+/// The kernel's WGSL. Debug builds read `$SILVR_SHADER_DIR/<name>.wgsl` instead when that variable is set,
+/// so kernel work can iterate on a shader without rebuilding the engine; release builds always run the
+/// embedded copy.
+fn kernel_source(kernel: &Kernel) -> std::borrow::Cow<'static, str> {
+    #[cfg(all(debug_assertions, not(target_arch = "wasm32")))]
+    if let Some(dir) = std::env::var_os("SILVR_SHADER_DIR") {
+        let path = std::path::Path::new(&dir).join(format!("{}.wgsl", kernel.name));
+        if let Ok(s) = std::fs::read_to_string(&path) {
+            return s.into();
+        }
+    }
+    kernel.source.into()
 }
 
 /// Workgroup counts for `invocations` threads, folded into (x, y) when x would exceed the per-dimension limit.
@@ -42,7 +57,19 @@ impl Gpu {
         kernel: &Kernel,
         entry: &str,
     ) -> Result<wgpu::ComputePipeline, GpuError> {
-        let key = format!("{}::{entry}", kernel.name);
+        self.pipeline_variant(kernel, "", entry).await
+    }
+
+    /// [`Self::pipeline`] for the module compiled with `prelude` (WGSL `const` declarations, see
+    /// [`Kernel`]) in front of its source: one pipeline per distinct prelude, so kernels specialised to
+    /// a layer's shape get constant loop bounds (unrolled, private arrays in registers).
+    pub async fn pipeline_variant(
+        &self,
+        kernel: &Kernel,
+        prelude: &str,
+        entry: &str,
+    ) -> Result<wgpu::ComputePipeline, GpuError> {
+        let key = format!("{}::{entry}{prelude}", kernel.name);
         if let Some(p) = self
             .pipelines
             .lock()
@@ -52,11 +79,12 @@ impl Gpu {
             return Ok(p.clone());
         }
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let source = format!("{prelude}{}", kernel_source(kernel));
         let module = self
             .device
             .create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some(kernel.name),
-                source: wgpu::ShaderSource::Wgsl(kernel.source.into()),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
             });
         let pipeline = self
             .device
@@ -163,7 +191,21 @@ impl Gpu {
         bindings: &[(u32, &wgpu::Buffer)],
         invocations: u32,
     ) -> Result<(), GpuError> {
-        let pipeline = self.pipeline(kernel, entry).await?;
+        self.dispatch_variant(encoder, kernel, "", entry, bindings, invocations)
+            .await
+    }
+
+    /// [`Self::dispatch`] of the module specialised by `prelude` (see [`Self::pipeline_variant`]).
+    pub async fn dispatch_variant(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        kernel: &Kernel,
+        prelude: &str,
+        entry: &str,
+        bindings: &[(u32, &wgpu::Buffer)],
+        invocations: u32,
+    ) -> Result<(), GpuError> {
+        let pipeline = self.pipeline_variant(kernel, prelude, entry).await?;
         let layout = pipeline.get_bind_group_layout(0);
         let entries: Vec<wgpu::BindGroupEntry> = bindings
             .iter()
@@ -185,13 +227,77 @@ impl Gpu {
             });
         }
         let (x, y) = folded_workgroups(invocations, kernel.workgroup_size);
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(entry),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&pipeline);
-        pass.set_bind_group(0, &bind_group, &[]);
-        pass.dispatch_workgroups(x, y, 1);
+        let record =
+            |encoder: &mut wgpu::CommandEncoder,
+             timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>| {
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some(entry),
+                    timestamp_writes: timestamps,
+                });
+                pass.set_pipeline(&pipeline);
+                pass.set_bind_group(0, &bind_group, &[]);
+                pass.dispatch_workgroups(x, y, 1);
+            };
+        let mut guard = self.profiler.lock().expect("profiler poisoned");
+        let Some(prof) = guard.as_mut() else {
+            drop(guard);
+            record(encoder, None);
+            return Ok(());
+        };
+        let key = (prof.scope.clone(), format!("{}::{entry}", kernel.name));
+        let bytes: u64 = bindings.iter().map(|(_, b)| b.size()).sum();
+        match prof.mode {
+            ProfileMode::Timestamps => {
+                let i = 2 * prof.pending.len() as u32;
+                match prof.query_set.clone() {
+                    Some(qs) if i + 2 <= MAX_QUERIES => {
+                        prof.pending.push((key, bytes));
+                        drop(guard);
+                        record(
+                            encoder,
+                            Some(wgpu::ComputePassTimestampWrites {
+                                query_set: &qs,
+                                beginning_of_pass_write_index: Some(i),
+                                end_of_pass_write_index: Some(i + 1),
+                            }),
+                        );
+                    }
+                    // More passes than queries before a readback: this one goes untimed.
+                    _ => {
+                        drop(guard);
+                        record(encoder, None);
+                    }
+                }
+            }
+            ProfileMode::TimedSubmits => {
+                drop(guard);
+                #[cfg(not(target_arch = "wasm32"))]
+                {
+                    // Finish what came before, then time this pass alone.
+                    let before = std::mem::replace(encoder, self.encoder("profiled"));
+                    self.queue.submit([before.finish()]);
+                    self.device
+                        .poll(wgpu::PollType::wait_indefinitely())
+                        .map_err(|e| GpuError::Readback(e.to_string()))?;
+                    let t = std::time::Instant::now();
+                    record(encoder, None);
+                    let this = std::mem::replace(encoder, self.encoder("profiled"));
+                    self.queue.submit([this.finish()]);
+                    self.device
+                        .poll(wgpu::PollType::wait_indefinitely())
+                        .map_err(|e| GpuError::Readback(e.to_string()))?;
+                    let s = t.elapsed().as_secs_f64();
+                    if let Some(p) = self.profiler.lock().expect("profiler poisoned").as_mut() {
+                        p.add(key, s, bytes);
+                    }
+                }
+                #[cfg(target_arch = "wasm32")]
+                {
+                    let _ = key;
+                    record(encoder, None);
+                }
+            }
+        }
         Ok(())
     }
 
@@ -221,8 +327,42 @@ impl Gpu {
             encoder.copy_buffer_to_buffer(buffer, 0, &s, 0, bytes.min(buffer.size()));
             staging.push((s, *count));
         }
+        // Profiling: resolve the timestamps of the passes recorded since the last readback.
+        let timed = {
+            let mut guard = self.profiler.lock().expect("profiler poisoned");
+            match guard.as_mut() {
+                Some(p) if !p.pending.is_empty() => {
+                    let qs = p.query_set.clone().expect("timestamp mode has a query set");
+                    let n = 2 * p.pending.len() as u32;
+                    let bytes = n as u64 * 8;
+                    let resolve = self.device.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("profile resolve"),
+                        size: bytes,
+                        usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                        mapped_at_creation: false,
+                    });
+                    let read = self.device.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("profile readback"),
+                        size: bytes,
+                        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                        mapped_at_creation: false,
+                    });
+                    encoder.resolve_query_set(&qs, 0..n, &resolve, 0);
+                    encoder.copy_buffer_to_buffer(&resolve, 0, &read, 0, bytes);
+                    Some((read, std::mem::take(&mut p.pending)))
+                }
+                _ => None,
+            }
+        };
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         self.queue.submit([encoder.finish()]);
+        let timed_rx = timed.map(|(read, passes)| {
+            let (tx, rx) = futures_channel::oneshot::channel();
+            read.map_async(wgpu::MapMode::Read, .., move |r| {
+                let _ = tx.send(r);
+            });
+            (read, passes, rx)
+        });
         let mut receivers = Vec::with_capacity(staging.len());
         for (s, _) in &staging {
             let (tx, rx) = futures_channel::oneshot::channel();
@@ -254,6 +394,25 @@ impl Gpu {
             drop(view);
             s.unmap();
             out.push(v);
+        }
+        if let Some((read, passes, rx)) = timed_rx {
+            rx.await
+                .map_err(|_| GpuError::Readback("the device dropped the map request".into()))?
+                .map_err(|e| GpuError::Readback(e.to_string()))?;
+            let ticks: Vec<u64> = {
+                let view = read
+                    .get_mapped_range(..)
+                    .map_err(|e| GpuError::Readback(e.to_string()))?;
+                bytemuck::pod_collect_to_vec(&view[..])
+            };
+            read.unmap();
+            let period = self.queue.get_timestamp_period() as f64 * 1e-9;
+            if let Some(p) = self.profiler.lock().expect("profiler poisoned").as_mut() {
+                for (k, (key, bytes)) in passes.into_iter().enumerate() {
+                    let dt = ticks[2 * k + 1].saturating_sub(ticks[2 * k]) as f64 * period;
+                    p.add(key, dt, bytes);
+                }
+            }
         }
         Ok(out)
     }

@@ -10,8 +10,10 @@
 
 mod context;
 mod kernel;
+pub mod profile;
 
 pub use context::{AdapterReport, Gpu, GpuError, GpuOptions, BASELINE};
 pub use kernel::{folded_workgroups, Kernel, MAX_WORKGROUPS_PER_DIM};
+pub use profile::{PassRow, ProfileMode};
 /// Re-exported so callers name backends and buffers without depending on wgpu themselves.
 pub use wgpu::{self, Backends};

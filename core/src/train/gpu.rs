@@ -457,6 +457,7 @@ impl GpuEngine {
         let n = c.sampler.samples;
         // First level's edges.
         let first = &w.levels[0];
+        self.gpu.profile_scope("forward proposal 0");
         let u = Uniform {
             count: r32,
             n_out: first.n as u32,
@@ -477,6 +478,7 @@ impl GpuEngine {
         )
         .await?;
         for (l, lv) in w.levels.iter().enumerate() {
+            self.gpu.profile_scope(&format!("forward proposal {l}"));
             let rows = u32_of(rays * lv.n, "samples")?;
             let layout = HashGridLayout::new(&c.proposals[l].grid)?;
             let pos = GpuPositions {
@@ -553,6 +555,7 @@ impl GpuEngine {
             )
             .await?;
         }
+        self.gpu.profile_scope("forward field");
         let nm = normal_rays * n;
         let u = Uniform {
             count: u32_of(nm, "normal samples")?,
@@ -688,6 +691,7 @@ impl GpuEngine {
         let n = c.sampler.samples;
         let base = self.base_uniform(r, nm);
         let r32 = r as u32;
+        self.gpu.profile_scope("render + losses");
         render::record_render_backward(
             &self.gpu,
             &mut enc,
@@ -701,6 +705,7 @@ impl GpuEngine {
         )
         .await?;
         // Final level: weights, distortion, dL/dσ (in place) and dL/drgb.
+        self.gpu.profile_scope("backward field");
         let u = Uniform {
             count: r32,
             n_in: n as u32,
@@ -821,6 +826,7 @@ impl GpuEngine {
         }
         let inv2 = sch.losses.inv_two_var();
         for (l, lv) in w.levels.iter().enumerate() {
+            self.gpu.profile_scope(&format!("backward proposal {l}"));
             let u = Uniform {
                 count: r32,
                 n_in: lv.n as u32,
@@ -901,6 +907,7 @@ impl GpuEngine {
             .await?;
         }
         if update {
+            self.gpu.profile_scope("adam");
             let (a, cc) = adam.corrections(lr, adam_t);
             for i in 0..self.sizes.len() {
                 let u = Uniform {
