@@ -20,6 +20,9 @@ const MAX_LOGIT: f32 = 15.0;
 const INTERLEVEL_EPS: f32 = 1.1920929e-7;
 const LOG_EPS: f32 = 1e-7;
 const NO_APPEARANCE: u32 = 0xffffffffu;
+const NOT_SELECTED: u32 = 0xffffffffu;
+// train::cpu::INFERENCE_MIN_WEIGHT.
+const INFERENCE_MIN_WEIGHT: f32 = 1e-4;
 
 struct Params {
     // Threads of this dispatch (rays, samples or elements).
@@ -109,6 +112,12 @@ struct Target {
 @group(0) @binding(33) var<storage, read> w_in: array<f32>;
 @group(0) @binding(34) var<storage, read> dens_in: array<f32>;
 @group(0) @binding(35) var<storage, read_write> d_rgb: array<f32>;
+// Inference's colour selection (colour_count, colour_select, colour_input with selection, shade):
+// per-ray counts and offsets, the selected samples in order, and per sample its row or NOT_SELECTED.
+@group(0) @binding(36) var<storage, read_write> sel_count: array<u32>;
+@group(0) @binding(37) var<storage, read> sel_offset: array<u32>;
+@group(0) @binding(38) var<storage, read_write> sel_list: array<u32>;
+@group(0) @binding(39) var<storage, read_write> sel_index: array<u32>;
 
 fn thread_index(wg: vec3<u32>, nwg: vec3<u32>, li: u32) -> u32 {
     return (wg.y * nwg.x + wg.x) * WG + li;
@@ -392,17 +401,82 @@ fn mean_appearance(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups
     mean_app[d] = m;
 }
 
-// Colour-MLP input rows: SH(direction) + geometry features + appearance (table row, or the mean).
+// Whether inference colours sample i of a ray (edges from e0 in t_in, logits from k0): its weight is at
+// least INFERENCE_MIN_WEIGHT, or it is the ray's last non-empty sample `last` (the background colour).
+// Same rule and arithmetic as train::cpu::inference_colour_samples; called over a ray's samples in
+// order, carrying the optical depth p.
+fn colour_wanted(e0: u32, k0: u32, i: u32, last: u32, p: ptr<function, f32>) -> bool {
+    let sigma = density_of(logits[(k0 + i) * prm.out_dim]);
+    let delta = max(t_in[e0 + i + 1u] - t_in[e0 + i], 0.0);
+    var tau = 0.0;
+    if (delta > 0.0) {
+        tau = sigma * delta;
+    }
+    let w = exp(-*p) * alpha(tau);
+    *p += tau;
+    return w >= INFERENCE_MIN_WEIGHT || i == last;
+}
+
+// The last sample of a ray with a non-empty interval (n_in when none is).
+fn last_nonempty(e0: u32) -> u32 {
+    var last = prm.n_in;
+    for (var i = 0u; i < prm.n_in; i++) {
+        if (t_in[e0 + i + 1u] - t_in[e0 + i] > 0.0) {
+            last = i;
+        }
+    }
+    return last;
+}
+
+// Inference, one thread per ray: how many of its samples get a colour.
 @compute @workgroup_size(64)
-fn colour_input(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+fn colour_count(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                 @builtin(local_invocation_index) li: u32) {
-    let i = thread_index(wg, nwg, li);
-    if (i >= prm.count) {
+    let r = thread_index(wg, nwg, li);
+    if (r >= prm.count) {
         return;
     }
+    let n = prm.n_in;
+    let last = last_nonempty(r * (n + 1u));
+    var p = 0.0;
+    var c = 0u;
+    for (var i = 0u; i < n; i++) {
+        if (colour_wanted(r * (n + 1u), r * n, i, last, &p)) {
+            c++;
+        }
+    }
+    sel_count[r] = c;
+}
+
+// Inference, one thread per ray: its selected samples listed from sel_offset[r] (the exclusive prefix of
+// the counts), and every sample's row in that list.
+@compute @workgroup_size(64)
+fn colour_select(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                 @builtin(local_invocation_index) li: u32) {
+    let r = thread_index(wg, nwg, li);
+    if (r >= prm.count) {
+        return;
+    }
+    let n = prm.n_in;
+    let last = last_nonempty(r * (n + 1u));
+    var p = 0.0;
+    var o = sel_offset[r];
+    for (var i = 0u; i < n; i++) {
+        var row = NOT_SELECTED;
+        if (colour_wanted(r * (n + 1u), r * n, i, last, &p)) {
+            row = o;
+            sel_list[o] = r * n + i;
+            o++;
+        }
+        sel_index[r * n + i] = row;
+    }
+}
+
+// Colour-MLP input row of sample i: SH(direction) + geometry features + appearance (table row, or the
+// mean), at `row`.
+fn write_colour_input(i: u32, row: u32) {
     let r = i / prm.n_in;
     let d = ray_dir(r);
-    let row = i * prm.c_in;
     for (var k = 0u; k < 16u; k++) {
         colour_in[row + k] = sh4(d, k);
     }
@@ -420,20 +494,35 @@ fn colour_input(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) n
     }
 }
 
-// Render inputs per final sample: (colour, density), the interval, and the FD normal (zero for samples
-// of rays without one) with |grad logit| for the backward.
+// Colour-MLP input rows, one thread per sample (training: every sample).
 @compute @workgroup_size(64)
-fn shade(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-         @builtin(local_invocation_index) li: u32) {
+fn colour_input(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                @builtin(local_invocation_index) li: u32) {
     let i = thread_index(wg, nwg, li);
     if (i >= prm.count) {
         return;
     }
+    write_colour_input(i, i * prm.c_in);
+}
+
+// Colour-MLP input rows of inference's selected samples, one thread per selected sample.
+@compute @workgroup_size(64)
+fn colour_input_selected(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                         @builtin(local_invocation_index) li: u32) {
+    let k = thread_index(wg, nwg, li);
+    if (k >= prm.count) {
+        return;
+    }
+    write_colour_input(sel_list[k], k * prm.c_in);
+}
+
+// Render inputs per final sample: (colour, density), the interval, and the FD normal (zero for samples
+// of rays without one) with |grad logit| for the backward.
+fn shade_sample(i: u32, rgb: vec3<f32>) {
     let n = prm.n_in;
     let r = i / n;
     let e = r * (n + 1u) + i % n;
-    samples[i] = vec4<f32>(colour_out[3u * i], colour_out[3u * i + 1u], colour_out[3u * i + 2u],
-                           density_of(logits[i * prm.out_dim]));
+    samples[i] = vec4<f32>(rgb, density_of(logits[i * prm.out_dim]));
     intervals[i] = vec2<f32>(t_in[e], t_in[e + 1u]);
     var nv = vec3<f32>(0.0);
     var len = 0.0;
@@ -454,6 +543,32 @@ fn shade(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec
     normals[3u * i] = nv.x;
     normals[3u * i + 1u] = nv.y;
     normals[3u * i + 2u] = nv.z;
+}
+
+@compute @workgroup_size(64)
+fn shade(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+         @builtin(local_invocation_index) li: u32) {
+    let i = thread_index(wg, nwg, li);
+    if (i >= prm.count) {
+        return;
+    }
+    shade_sample(i, vec3<f32>(colour_out[3u * i], colour_out[3u * i + 1u], colour_out[3u * i + 2u]));
+}
+
+// shade for inference: the colour of a selected sample from its row of the colour MLP, black otherwise.
+@compute @workgroup_size(64)
+fn shade_selected(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                  @builtin(local_invocation_index) li: u32) {
+    let i = thread_index(wg, nwg, li);
+    if (i >= prm.count) {
+        return;
+    }
+    let k = sel_index[i];
+    var rgb = vec3<f32>(0.0);
+    if (k != NOT_SELECTED) {
+        rgb = vec3<f32>(colour_out[3u * k], colour_out[3u * k + 1u], colour_out[3u * k + 2u]);
+    }
+    shade_sample(i, rgb);
 }
 
 // ---- backward ----

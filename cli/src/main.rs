@@ -171,6 +171,10 @@ enum Command {
         /// Steps timed by --profile (after the warm-up).
         #[arg(long, default_value_t = 10)]
         profile_steps: u32,
+        /// Also time inference (a held-out view, no normals) of this trained field (a `silvr train`
+        /// checkpoint on the same dataset) beside the short run's.
+        #[arg(long)]
+        render_checkpoint: Option<PathBuf>,
     },
     /// Proposal networks vs an Instant-NGP occupancy grid for placing the final samples: the same training
     /// on the CPU reference with each; wall time, PSNR curve, held-out PSNR, geometry when GT is present.
@@ -240,6 +244,9 @@ struct UncertaintyCmd {
     rays: usize,
     #[arg(long, default_value_t = 7)]
     seed: u64,
+    /// Time every GPU pass of the WGSL uncertainty pass and print time and bound bytes per pass.
+    #[arg(long)]
+    profile: bool,
 }
 
 fn uncertainty_cmd(c: UncertaintyCmd) -> Result<()> {
@@ -256,6 +263,7 @@ fn uncertainty_cmd(c: UncertaintyCmd) -> Result<()> {
         backend: c.backend,
         config,
         quiet: false,
+        profile: c.profile,
     })?;
     if let Some(gt) = c.gt {
         let v = uncertainty::evaluate(&c.model, &gt, &summary)?;
@@ -373,6 +381,7 @@ fn main() {
             max_seconds,
             profile,
             profile_steps,
+            render_checkpoint,
         } => train::bench(&train::BenchArgs {
             dataset,
             mode,
@@ -383,6 +392,7 @@ fn main() {
             target_psnr,
             max_seconds,
             profile: profile.then_some(profile_steps),
+            render_checkpoint,
         }),
         Command::BenchSampler(a) => train::bench_sampler(&a),
         Command::Bench { points, reps, json } => bench(points, reps, json),

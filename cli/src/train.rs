@@ -12,43 +12,9 @@ use silvr_core::train::data::{LoadOptions, TrainData};
 use silvr_core::train::export::ViewScore;
 use silvr_core::train::{Backend, Mode, TrainConfig, Trainer};
 
-/// Model sizes by name: `nerfacto` (the paper's) or `small` (a quick look, and the `ci` demo: 2^16-entry
-/// tables up to 1024 cells, proposals 64 → 32 → 24 samples; 2^17 gave +0.5 dB held-out PSNR on the ci world
-/// for ~25% more demo time, 2^15 −0.5 dB).
+/// Model sizes by name (see [`ModelConfig::preset`]).
 pub fn model_preset(name: &str, images: usize) -> Result<ModelConfig> {
-    let mut m = ModelConfig::nerfacto(images);
-    match name {
-        "nerfacto" => {}
-        "small" => {
-            m.field.grid.log2_table_size = 16;
-            m.field.grid.finest_resolution = 1024;
-            m.sampler.proposal_samples = vec![64, 32];
-            m.sampler.samples = 24;
-            for p in &mut m.proposals {
-                p.grid.log2_table_size = 15;
-            }
-        }
-        "medium" => {
-            // nerfacto's finest resolution with a 2^18 table and the small model's sample counts: the
-            // default world on a CPU (BENCHMARKS.md).
-            m.field.grid.log2_table_size = 18;
-            m.sampler.proposal_samples = vec![64, 32];
-            m.sampler.samples = 24;
-            for p in &mut m.proposals {
-                p.grid.log2_table_size = 16;
-            }
-        }
-        o => bail!("unknown model size {o:?} (nerfacto, medium, small)"),
-    }
-    Ok(m)
-}
-
-/// σ decays by SiLVR's 0.99985 per step, or faster when the run is short, so that it reaches its floor
-/// by 60% of the run (coarse to fine within any run length).
-pub fn sigma_decay_for(c: &TrainConfig, steps: u32) -> f32 {
-    let ratio = (c.depth_sigma_end / c.depth_sigma_start) as f64;
-    let needed = ratio.powf(1.0 / (0.6 * steps.max(1) as f64)) as f32;
-    needed.min(0.99985)
+    Ok(ModelConfig::preset(name, images)?)
 }
 
 pub struct TrainArgs {
@@ -179,24 +145,10 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         }
         None => {
             let model = model_preset(&a.model, data.train.len())?;
-            let config = TrainConfig {
-                mode: a.mode,
-                steps: a.steps,
-                rays_per_batch: a.rays,
-                seed: a.seed,
-                adam: silvr_core::train::adam::AdamConfig {
-                    decay_steps: a.steps.max(1),
-                    lr_final: 1e-3,
-                    ..Default::default()
-                },
-                ..Default::default()
-            };
-            let mut config = config;
+            let mut config = TrainConfig::for_run(a.mode, a.steps, a.rays, a.seed);
             if let Some((a0, a1)) = a.depth_sigma {
-                config.depth_sigma_start = a0;
-                config.depth_sigma_end = a1;
+                config.schedule_sigma(a0, a1);
             }
-            config.depth_sigma_decay = sigma_decay_for(&config, a.steps);
             Trainer::new(data, model, config, engine)?
         }
     };
@@ -205,7 +157,22 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
     let start = trainer.step;
     let mut last_print = Instant::now();
     while trainer.step < a.steps {
-        let stats = pollster::block_on(trainer.train_step())?;
+        let stats = match pollster::block_on(trainer.train_step()) {
+            Ok(s) => s,
+            Err(e) => {
+                let resume = match Checkpoint::load(&ckpt) {
+                    Ok(ck) => format!(
+                        "the last checkpoint, at step {}, is {}: rerun with --resume {}",
+                        ck.header.step,
+                        ckpt.display(),
+                        ckpt.display()
+                    ),
+                    Err(_) => "no checkpoint was written yet (--checkpoint-every N writes one every N steps)"
+                        .to_string(),
+                };
+                bail!("training stopped at step {}: {e}\n{resume}", trainer.step);
+            }
+        };
         let done = trainer.step;
         if !a.quiet && (last_print.elapsed().as_secs_f64() > 5.0 || done == a.steps) {
             last_print = Instant::now();
@@ -231,14 +198,36 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
     pollster::block_on(trainer.checkpoint())?.save(&ckpt)?;
     let recent = &trainer.history[trainer.history.len().saturating_sub(20)..];
     let mse = recent.iter().map(|s| s.rgb_mse).sum::<f64>() / recent.len().max(1) as f64;
-    // Held-out views: scores and renders.
+    // Held-out views: scores and renders, with progress and ETA on long renders.
+    if !a.quiet {
+        let mut last = Instant::now();
+        let mut start: Option<Instant> = None;
+        trainer.render_progress = Some(Box::new(move |done, total| {
+            let t0 = *start.get_or_insert_with(Instant::now);
+            if done == total {
+                start = None;
+            }
+            if last.elapsed().as_secs_f64() > 5.0 {
+                last = Instant::now();
+                let el = t0.elapsed().as_secs_f64();
+                eprintln!(
+                    "  rendering {done}/{total} rays ({:.0} rays/s, ETA {:.0} s)",
+                    done as f64 / el.max(1e-9),
+                    el / done.max(1) as f64 * (total - done) as f64
+                );
+            }
+        }));
+    }
     let renders = a.out.join("renders");
     std::fs::create_dir_all(&renders)?;
+    let t_render = Instant::now();
+    let mut rendered_rays = 0usize;
     let mut views = Vec::new();
     for (k, &i) in trainer.data.val.clone().iter().enumerate() {
         // Normals for the first held-out view only: they cost six more density evaluations per sample.
         let normals = a.view_normals && k == 0;
         let v = pollster::block_on(trainer.render_view(i, normals))?;
+        rendered_rays += v.valid.len();
         let score = trainer.score_view(i, &v)?;
         let (rgb, depth, normal_png) = trainer.view_pngs(i, &v);
         let stem = trainer.data.images[i]
@@ -254,9 +243,18 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         }
         views.push(score);
     }
+    let render_s = t_render.elapsed().as_secs_f64();
     if !views.is_empty() {
         stages["renders"] = trainer.engine.name().into();
+        if !a.quiet {
+            eprintln!(
+                "rendered {} held-out views ({rendered_rays} rays) in {render_s:.1} s: {:.0} rays/s",
+                views.len(),
+                rendered_rays as f64 / render_s
+            );
+        }
     }
+    let t_export = Instant::now();
     let points = if a.export_rays > 0 {
         let cloud = pollster::block_on(trainer.export_points(
             a.export_rays,
@@ -267,10 +265,20 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         let p = a.out.join("points.ply");
         silvr_core::pointcloud::write_ply(&p, &cloud)?;
         stages["export"] = trainer.engine.name().into();
+        if !a.quiet {
+            eprintln!(
+                "exported {} points from {} rays in {:.1} s",
+                cloud.len(),
+                a.export_rays,
+                t_export.elapsed().as_secs_f64()
+            );
+        }
         Some(p)
     } else {
         None
     };
+    let export_s = t_export.elapsed().as_secs_f64();
+    trainer.render_progress = None;
     let uncertainty = match &a.uncertainty {
         Some(cfg) => {
             let u = crate::uncertainty::annotate(&mut trainer, cfg, &a.out, a.quiet)?;
@@ -303,6 +311,9 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         "heldout_psnr_mean": mean(summary.views.iter().map(|v| v.psnr)),
         "heldout_ssim_mean": mean(summary.views.iter().map(|v| v.ssim)),
         "points": summary.points,
+        "train_rays_per_s": (summary.steps.saturating_sub(start)) as f64 * a.rays as f64 / summary.train_s.max(1e-9),
+        "render_rays_per_s": (rendered_rays > 0).then(|| rendered_rays as f64 / render_s),
+        "export_rays_per_s": (a.export_rays > 0).then(|| a.export_rays as f64 / export_s),
         "uncertainty_s": summary.uncertainty.as_ref().map(|u| u.seconds),
     });
     write(
@@ -352,6 +363,7 @@ pub struct BenchArgs {
     pub max_seconds: f64,
     /// Steps to profile pass by pass (WGSL only), after a warm-up.
     pub profile: Option<u32>,
+    pub render_checkpoint: Option<PathBuf>,
 }
 
 fn new_trainer(
@@ -370,18 +382,7 @@ fn new_trainer(
         },
     )?;
     let model = model_preset(model, data.train.len())?;
-    let mut config = TrainConfig {
-        mode,
-        steps,
-        rays_per_batch: rays,
-        adam: silvr_core::train::adam::AdamConfig {
-            decay_steps: steps.max(1),
-            lr_final: 1e-3,
-            ..Default::default()
-        },
-        ..Default::default()
-    };
-    config.depth_sigma_decay = sigma_decay_for(&config, steps);
+    let config = TrainConfig::for_run(mode, steps, rays, 0);
     Ok(Trainer::new(data, model, config, backend)?)
 }
 
@@ -448,6 +449,21 @@ pub fn bench(a: &BenchArgs) -> Result<()> {
     };
     let rays_per_s = a.rays as f64 / median;
     let render_rays_per_s = render.map(|(n, s)| n as f64 / s);
+    // The same view from a trained field, whose samples concentrate on surfaces.
+    let trained_render = match (&a.render_checkpoint, view) {
+        (Some(p), Some(i)) => {
+            let ck = Checkpoint::load(p)?;
+            let data = TrainData::load(&a.dataset, &LoadOptions::default())?;
+            let (backend, _) = backend_for(&a.backend)?;
+            let mut tt = Trainer::resume(data, ck, backend)?;
+            let (rays, _) = tt.view_rays(i);
+            pollster::block_on(tt.render(&rays[..rays.len().min(256)], false))?;
+            let tr = Instant::now();
+            pollster::block_on(tt.render(&rays, false))?;
+            Some(rays.len() as f64 / tr.elapsed().as_secs_f64())
+        }
+        _ => None,
+    };
     let v = serde_json::json!({
         "backend": adapter,
         "dataset": a.dataset,
@@ -461,6 +477,8 @@ pub fn bench(a: &BenchArgs) -> Result<()> {
         "render_rays": render.map(|r| r.0),
         "render_rays_per_s": render_rays_per_s,
         "render_vs_training_rays": render_rays_per_s.map(|r| r / rays_per_s),
+        "trained_render_rays_per_s": trained_render,
+        "trained_render_vs_training_rays": trained_render.map(|r| r / rays_per_s),
         "target_psnr": a.target_psnr,
         "reached_at_step": reached.map(|r| r.0),
         "time_to_target_s": reached.map(|r| r.1),
@@ -510,12 +528,64 @@ fn profile(a: &BenchArgs, steps: u32) -> Result<()> {
         wall * 1e3,
         total * 1e3
     );
+    let out = print_profile(&rows, steps, wall * steps as f64);
+    // Inference: one held-out view (or a training view) of this field, pass by pass.
+    let inference = match t.data.val.first().or(t.data.train.first()).copied() {
+        Some(i) => {
+            let (rays, _) = t.view_rays(i);
+            let tr = Instant::now();
+            pollster::block_on(t.render(&rays, false))?;
+            let s = tr.elapsed().as_secs_f64();
+            let rows = gpu.profile_take();
+            eprintln!(
+                "inference: one view, {} rays, {:.0} rays/s",
+                rays.len(),
+                rays.len() as f64 / s
+            );
+            Some(serde_json::json!({
+                "rays": rays.len(),
+                "rays_per_s": rays.len() as f64 / s,
+                "passes": print_profile(&rows, 1, s),
+            }))
+        }
+        None => None,
+    };
+    let v = serde_json::json!({
+        "backend": adapter,
+        "timing": mode,
+        "model": a.model,
+        "mode": a.mode.name(),
+        "rays_per_batch": a.rays,
+        "steps_profiled": steps,
+        "step_wall_ms": wall * 1e3,
+        "passes_ms": total * 1e3,
+        "passes": out,
+        "inference": inference,
+        "note": "bytes bound: the sizes of the buffers each pass binds, an upper bound on what it reads and writes",
+    });
+    println!("{}", serde_json::to_string_pretty(&v)?);
+    Ok(())
+}
+
+/// Prints profiled passes per step (of `steps`) as a table on stderr, and returns them as JSON rows.
+pub fn print_profile(
+    rows: &[silvr_core::gpu::PassRow],
+    steps: u32,
+    wall_s: f64,
+) -> Vec<serde_json::Value> {
+    let steps = steps.max(1);
+    let total: f64 = rows.iter().map(|r| r.seconds).sum::<f64>() / steps as f64;
+    eprintln!(
+        "{:.1} ms wall, {:.1} ms in passes, per step",
+        wall_s / steps as f64 * 1e3,
+        total * 1e3
+    );
     eprintln!(
         "{:<22} {:<32} {:>6} {:>10} {:>6} {:>10}",
         "scope", "pass", "calls", "ms/step", "%", "MB bound"
     );
     let mut out = Vec::new();
-    for r in &rows {
+    for r in rows {
         let ms = r.seconds / steps as f64 * 1e3;
         let mb = r.bytes_bound as f64 / steps as f64 / 1e6;
         eprintln!(
@@ -532,20 +602,7 @@ fn profile(a: &BenchArgs, steps: u32) -> Result<()> {
             "ms_per_step": ms, "mb_bound_per_step": mb,
         }));
     }
-    let v = serde_json::json!({
-        "backend": adapter,
-        "timing": mode,
-        "model": a.model,
-        "mode": a.mode.name(),
-        "rays_per_batch": a.rays,
-        "steps_profiled": steps,
-        "step_wall_ms": wall * 1e3,
-        "passes_ms": total * 1e3,
-        "passes": out,
-        "note": "bytes bound: the sizes of the buffers each pass binds, an upper bound on what it reads and writes",
-    });
-    println!("{}", serde_json::to_string_pretty(&v)?);
-    Ok(())
+    out
 }
 
 /// The WGSL engine's step against the CPU reference on one batch of this dataset, from a trained field's

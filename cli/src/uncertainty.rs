@@ -13,8 +13,6 @@ use silvr_core::train::data::{LoadOptions, TrainData};
 use silvr_core::train::Trainer;
 use silvr_core::uncertainty::{self, sparsify, Fisher, Modality, UncertaintyConfig};
 
-use crate::train::backend_for;
-
 /// The PLY fields the read-out writes (log10 posterior std, metres).
 pub const FIELDS: [(&str, Modality); 3] = [
     ("log_std_colour", Modality::Colour),
@@ -47,6 +45,8 @@ pub struct UncertaintyArgs {
     pub backend: String,
     pub config: UncertaintyConfig,
     pub quiet: bool,
+    /// Print the WGSL pass's per-pass timings (WGSL only).
+    pub profile: bool,
 }
 
 /// What the pass produced.
@@ -78,12 +78,29 @@ pub fn run(a: &UncertaintyArgs) -> Result<UncertaintySummary> {
             skip_lidar: false,
         },
     )?;
-    let (engine, adapter) = backend_for(&a.backend)?;
+    let options = silvr_core::gpu::GpuOptions {
+        profile: a.profile,
+        ..Default::default()
+    };
+    let backend = if a.profile {
+        "wgpu"
+    } else {
+        a.backend.as_str()
+    };
+    let (engine, adapter) = crate::train::backend_with(backend, options)?;
     if !a.quiet {
         eprintln!("uncertainty on {adapter}");
     }
     let mut trainer = Trainer::resume(data, ck, engine)?;
-    annotate(&mut trainer, &a.config, &a.model_dir, a.quiet)
+    let t0 = Instant::now();
+    let out = annotate(&mut trainer, &a.config, &a.model_dir, a.quiet)?;
+    if let silvr_core::train::Engine::Wgpu(e) = &trainer.engine {
+        if a.profile {
+            let rows = e.gpu.profile_take();
+            crate::train::print_profile(&rows, 1, t0.elapsed().as_secs_f64());
+        }
+    }
+    Ok(out)
 }
 
 fn dataset_of(dir: &Path) -> Result<PathBuf> {

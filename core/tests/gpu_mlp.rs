@@ -388,7 +388,7 @@ fn chained_passes_in_one_encoder_with_accumulation() {
                 saved: &b_saved,
                 d_output: &b_dy,
                 scratch: &b_scratch,
-                d_params: &b_dparams,
+                d_params: Some(&b_dparams),
                 d_input: Some(&b_dx),
             };
             mlp::record_backward(&gpu, &mut enc, &c, n as u32, &bb, accumulate).await?;
@@ -428,6 +428,48 @@ fn chained_passes_in_one_encoder_with_accumulation() {
 
 /// Rows exactly on the ReLU kink, huge pre-activations under the sigmoid, and all-zero inputs: finite results
 /// equal to the CPU's (a unit at exactly 0 is inactive on both).
+/// The input-only backward (no `d_params`: no parameter-gradient passes, as the uncertainty pass runs it)
+/// gives exactly the full backward's dL/dinput.
+#[test]
+fn input_only_backward_matches_the_full_backward() {
+    let Some(gpu) = gpu() else { return };
+    for (k, c) in configs().into_iter().enumerate() {
+        let n = 300;
+        let params = random_params(&c, 40 + k as u64);
+        let x = random_values(50 + k as u64, n * c.input);
+        let dy = random_values(60 + k as u64, n * c.output);
+        let fwd = pollster::block_on(mlp::forward_gpu(&gpu, &c, &params, &x)).unwrap();
+        let full = pollster::block_on(mlp::backward_gpu(
+            &gpu, &c, &params, &x, &fwd.saved, &dy, true,
+        ))
+        .unwrap();
+        let b_params = gpu.upload("params", &params).unwrap();
+        let b_x = gpu.upload("input", &x).unwrap();
+        let b_saved = gpu.upload("saved", &fwd.saved).unwrap();
+        let b_dy = gpu.upload("dy", &dy).unwrap();
+        let b_scratch = gpu.output("scratch", c.scratch_words(n)).unwrap();
+        let b_dx = gpu.output("dinput", n * c.input).unwrap();
+        let mut enc = gpu.encoder("input only");
+        let bb = BackwardBuffers {
+            params: &b_params,
+            input: &b_x,
+            saved: &b_saved,
+            d_output: &b_dy,
+            scratch: &b_scratch,
+            d_params: None,
+            d_input: Some(&b_dx),
+        };
+        pollster::block_on(mlp::record_backward(
+            &gpu, &mut enc, &c, n as u32, &bb, false,
+        ))
+        .unwrap();
+        let dx = pollster::block_on(gpu.finish_and_read::<f32>(enc, &[(&b_dx, n * c.input)]))
+            .unwrap()
+            .remove(0);
+        assert_eq!(&dx, full.input.as_ref().unwrap(), "{c:?}");
+    }
+}
+
 #[test]
 fn kinks_and_saturation() {
     let Some(gpu) = gpu() else { return };
@@ -628,7 +670,7 @@ fn bench_nerfacto_heads() {
             saved: &b_saved,
             d_output: &b_dy,
             scratch: &b_scratch,
-            d_params: &b_dparams,
+            d_params: Some(&b_dparams),
             d_input: Some(&b_dx),
         };
         let flops = 2.0

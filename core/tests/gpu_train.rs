@@ -158,3 +158,39 @@ fn rendering_matches_the_cpu_reference() {
         );
     }
 }
+
+/// A device lost mid-training (here destroyed, as a driver reset would) gives an error that says so and
+/// points at resuming from the last checkpoint, never a panic; the engine's host copies from before the
+/// loss are intact, so a new device continues from them.
+#[test]
+fn a_lost_device_is_a_clear_error_and_a_new_one_continues() {
+    let Some(gpu) = common::gpu() else { return };
+    let (cfg, params, batch) = common::setup(6, 24);
+    let sch = schedule(1.0);
+    let zeros: Vec<Vec<f32>> = params.tensors.iter().map(|t| vec![0.0; t.len()]).collect();
+    let adam = AdamConfig::default();
+    let mut eng = GpuEngine::new(gpu.clone(), &cfg, &params, &zeros, &zeros).unwrap();
+    pollster::block_on(eng.step(&batch, &sch, &adam, 1e-2, 1, true)).unwrap();
+    let (p, m, v) = pollster::block_on(eng.download()).unwrap();
+    gpu.device.destroy();
+    let mut errors = Vec::new();
+    for _ in 0..2 {
+        match pollster::block_on(eng.step(&batch, &sch, &adam, 1e-2, 2, true)) {
+            Ok(_) => {}
+            Err(e) => errors.push(e.to_string()),
+        }
+    }
+    let err = errors
+        .last()
+        .expect("stepping on a destroyed device must fail");
+    assert!(err.contains("lost") && err.contains("--resume"), "{err}");
+    // A fresh device takes the state downloaded before the loss.
+    let Some(fresh) = common::gpu() else { return };
+    let params = silvr_core::field::model::Params {
+        names: params.names.clone(),
+        tensors: p,
+    };
+    let mut eng = GpuEngine::new(fresh, &cfg, &params, &m, &v).unwrap();
+    let s = pollster::block_on(eng.step(&batch, &sch, &adam, 1e-2, 2, true)).unwrap();
+    assert!(s.loss.is_finite());
+}

@@ -883,8 +883,9 @@ pub struct BackwardBuffers<'a> {
     pub d_output: &'a wgpu::Buffer,
     /// [`MlpConfig::scratch_words`]`(n)` words, contents irrelevant.
     pub scratch: &'a wgpu::Buffer,
-    /// dL/dparams, [`MlpConfig::n_params`] words: overwritten, or added to with `accumulate`.
-    pub d_params: &'a wgpu::Buffer,
+    /// dL/dparams, [`MlpConfig::n_params`] words: overwritten, or added to with `accumulate`; `None`
+    /// skips the parameter gradients (the uncertainty pass wants dL/dinput only).
+    pub d_params: Option<&'a wgpu::Buffer>,
     /// dL/dinput `[n][input]`, overwritten; `None` skips the input layer's transposed product.
     pub d_input: Option<&'a wgpu::Buffer>,
 }
@@ -955,7 +956,9 @@ pub async fn record_backward(
     )?;
     need(buffers.d_output, rows * config.output, "dL/doutput")?;
     need(buffers.scratch, config.scratch_words(rows), "scratch")?;
-    need(buffers.d_params, config.n_params(), "dL/dparams")?;
+    if let Some(d) = buffers.d_params {
+        need(d, config.n_params(), "dL/dparams")?;
+    }
     if let Some(d) = buffers.d_input {
         need(d, rows * config.input, "dL/dinput")?;
     }
@@ -997,6 +1000,9 @@ pub async fn record_backward(
             )
             .await?;
         }
+        if buffers.d_params.is_none() {
+            return Ok(());
+        }
         for (l, ly) in config.layers().iter().enumerate() {
             let groups = MlpConfig::chunks(rows) as u32 * layer_blocks(ly) as u32;
             gpu.dispatch_variant(
@@ -1015,12 +1021,15 @@ pub async fn record_backward(
             .await?;
         }
     }
+    let Some(d_params) = buffers.d_params else {
+        return Ok(());
+    };
     gpu.dispatch_variant(
         encoder,
         &KERNEL,
         &layer_prelude(config, None),
         "reduce_grads",
-        &[(0, &u), (6, buffers.scratch), (7, buffers.d_params)],
+        &[(0, &u), (6, buffers.scratch), (7, d_params)],
         config.n_params() as u32,
     )
     .await
@@ -1107,7 +1116,7 @@ pub async fn backward_gpu(
         saved: &b_saved,
         d_output: &b_dout,
         scratch: &b_scratch,
-        d_params: &b_dparams,
+        d_params: Some(&b_dparams),
         d_input: b_dinput.as_ref(),
     };
     record_backward(gpu, &mut enc, config, n, &buffers, false).await?;
@@ -1174,9 +1183,25 @@ mod tests {
             c.scratch_words(1000),
             1000 * 131 + 1000usize.div_ceil(CHUNK_ROWS) * c.n_params()
         );
-        // 16 input columns (the bias is one) per parameter-gradient block.
+        // 32 input columns per parameter-gradient block (the first also sums the bias); a narrower
+        // layer's block is its width rounded up to a multiple of 4.
         let blocks: Vec<usize> = c.layers().iter().map(layer_blocks).collect();
-        assert_eq!(blocks, vec![4, 5, 5]);
+        assert_eq!(blocks, vec![2, 2, 2]);
+        let widths: Vec<usize> = MlpConfig::nerfacto_density()
+            .layers()
+            .iter()
+            .map(layer_block)
+            .collect();
+        assert_eq!(widths, vec![32, 32]);
+        let narrow = LayerInfo {
+            fan_in: 10,
+            fan_out: 16,
+            weights: 0,
+            bias: 0,
+            saved: 0,
+            delta: 0,
+        };
+        assert_eq!((layer_block(&narrow), layer_blocks(&narrow)), (12, 1));
     }
 
     #[test]

@@ -52,6 +52,21 @@ pub enum GpuError {
     BufferTooLarge { what: String, bytes: u64, max: u64 },
     #[error("reading a GPU buffer back failed: {0}")]
     Readback(String),
+    #[error(
+        "the GPU device on '{adapter}' was lost ({reason}); the work in flight is gone. Open a new device \
+         and resume from the last checkpoint (`silvr train ... --resume CHECKPOINT`)"
+    )]
+    DeviceLost { adapter: String, reason: String },
+    #[error(
+        "the GPU on '{adapter}' ran out of memory allocating {what} ({bytes} bytes; the device allows \
+         {max_buffer} bytes per buffer): use fewer rays per batch or a smaller model"
+    )]
+    OutOfMemory {
+        adapter: String,
+        what: String,
+        bytes: u64,
+        max_buffer: u64,
+    },
     #[error("invalid input for a GPU kernel: {0}")]
     InvalidInput(String),
 }
@@ -111,6 +126,8 @@ pub struct Gpu {
     pub(super) poison: Option<u32>,
     pub(super) pipelines: Arc<Mutex<HashMap<String, wgpu::ComputePipeline>>>,
     pub(super) profiler: Profiler,
+    /// Set by the device-lost callback: why the device went away.
+    pub(super) lost: Arc<Mutex<Option<String>>>,
 }
 
 impl fmt::Debug for Gpu {
@@ -176,6 +193,13 @@ impl Gpu {
         device.on_uncaptured_error(Arc::new(|e| {
             log::error!("uncaptured wgpu error: {e}");
         }));
+        let lost = Arc::new(Mutex::new(None));
+        let flag = lost.clone();
+        device.set_device_lost_callback(move |reason, message| {
+            if let Ok(mut l) = flag.lock() {
+                *l = Some(format!("{reason:?}: {message}"));
+            }
+        });
         let profiler = match (options.profile, timestamps) {
             (false, _) => None,
             (true, true) => {
@@ -198,6 +222,7 @@ impl Gpu {
             poison: options.poison,
             pipelines: Arc::new(Mutex::new(HashMap::new())),
             profiler: Arc::new(Mutex::new(profiler)),
+            lost,
         })
     }
 
@@ -235,6 +260,20 @@ impl Gpu {
                 rows
             }
             None => Vec::new(),
+        }
+    }
+
+    /// [`GpuError::DeviceLost`] once the device has been lost (driver reset, out of memory, destroyed).
+    pub fn check_lost(&self) -> Result<(), GpuError> {
+        // Natively the lost callback runs from device maintenance: let it.
+        #[cfg(not(target_arch = "wasm32"))]
+        let _ = self.device.poll(wgpu::PollType::Poll);
+        match self.lost.lock().ok().and_then(|l| l.clone()) {
+            Some(reason) => Err(GpuError::DeviceLost {
+                adapter: self.report.name.clone(),
+                reason,
+            }),
+            None => Ok(()),
         }
     }
 

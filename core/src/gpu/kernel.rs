@@ -3,7 +3,6 @@
 //! blocks in the browser.
 
 use bytemuck::Pod;
-use wgpu::util::DeviceExt;
 
 use super::context::{Gpu, GpuError};
 use super::profile::{ProfileMode, MAX_QUERIES};
@@ -118,25 +117,40 @@ impl Gpu {
         } else {
             bytes.to_vec()
         };
-        Ok(self
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: &contents,
-                usage: wgpu::BufferUsages::STORAGE
-                    | wgpu::BufferUsages::COPY_SRC
-                    | wgpu::BufferUsages::COPY_DST,
-            }))
+        self.check_lost()?;
+        Ok(self.buffer_with(
+            label,
+            &contents,
+            wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
+        ))
+    }
+
+    /// A buffer holding `contents` (a multiple of 4 bytes), written through the queue rather than mapped
+    /// at creation: on a lost device wgpu's mapped-at-creation path panics, this one lets the next
+    /// submit or readback report the loss.
+    fn buffer_with(&self, label: &str, contents: &[u8], usage: wgpu::BufferUsages) -> wgpu::Buffer {
+        let size = (contents.len() as u64).next_multiple_of(4).max(4);
+        let b = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage: usage | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        if !contents.is_empty() {
+            self.queue.write_buffer(&b, 0, contents);
+        }
+        b
     }
 
     /// A uniform buffer holding one `T`.
     pub fn uniform<T: Pod>(&self, label: &str, value: &T) -> wgpu::Buffer {
-        self.device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytemuck::bytes_of(value),
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            })
+        self.buffer_with(
+            label,
+            bytemuck::bytes_of(value),
+            wgpu::BufferUsages::UNIFORM,
+        )
     }
 
     /// A storage buffer a kernel writes, `words` 32-bit words long. Its contents are undefined to the
@@ -145,18 +159,13 @@ impl Gpu {
     pub fn output(&self, label: &str, words: usize) -> Result<wgpu::Buffer, GpuError> {
         let bytes = (words.max(1) * 4) as u64;
         self.check_size(label, bytes)?;
+        self.check_lost()?;
         match self.poison {
-            Some(pattern) => {
-                Ok(self
-                    .device
-                    .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                        label: Some(label),
-                        contents: bytemuck::cast_slice(&vec![pattern; words.max(1)]),
-                        usage: wgpu::BufferUsages::STORAGE
-                            | wgpu::BufferUsages::COPY_SRC
-                            | wgpu::BufferUsages::COPY_DST,
-                    }))
-            }
+            Some(pattern) => Ok(self.buffer_with(
+                label,
+                bytemuck::cast_slice(&vec![pattern; words.max(1)]),
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            )),
             None => Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
                 size: bytes,
@@ -221,6 +230,7 @@ impl Gpu {
             entries: &entries,
         });
         if let Some(err) = scope.pop().await {
+            self.check_lost()?;
             return Err(GpuError::Kernel {
                 kernel: format!("{}::{entry}", kernel.name),
                 detail: err.to_string(),
@@ -314,6 +324,7 @@ impl Gpu {
         mut encoder: wgpu::CommandEncoder,
         buffers: &[(&wgpu::Buffer, usize)],
     ) -> Result<Vec<Vec<T>>, GpuError> {
+        self.check_lost()?;
         let elem = std::mem::size_of::<T>() as u64;
         let mut staging = Vec::with_capacity(buffers.len());
         for (buffer, count) in buffers {
@@ -372,20 +383,27 @@ impl Gpu {
             receivers.push(rx);
         }
         if let Some(err) = scope.pop().await {
+            self.check_lost()?;
             return Err(GpuError::Kernel {
                 kernel: "submit".into(),
                 detail: err.to_string(),
             });
         }
         #[cfg(not(target_arch = "wasm32"))]
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        if let Err(e) = self.device.poll(wgpu::PollType::wait_indefinitely()) {
+            self.check_lost()?;
+            return Err(GpuError::Readback(e.to_string()));
+        }
         let mut out = Vec::with_capacity(staging.len());
         for ((s, count), rx) in staging.iter().zip(receivers) {
-            rx.await
-                .map_err(|_| GpuError::Readback("the device dropped the map request".into()))?
-                .map_err(|e| GpuError::Readback(e.to_string()))?;
+            let mapped = rx
+                .await
+                .map_err(|_| GpuError::Readback("the device dropped the map request".into()))
+                .and_then(|r| r.map_err(|e| GpuError::Readback(e.to_string())));
+            if mapped.is_err() {
+                self.check_lost()?;
+            }
+            mapped?;
             let view = s
                 .get_mapped_range(..)
                 .map_err(|e| GpuError::Readback(e.to_string()))?;

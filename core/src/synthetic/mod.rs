@@ -64,6 +64,18 @@ impl Preset {
         }
     }
 
+    /// The parity tests' world (seconds to generate and to train on a software adapter): the `ci` street
+    /// at 180x135 pixels, 12 keyframes (two held out), ground truth at 5 cm spacing.
+    pub fn micro(seed: u64) -> Self {
+        Self {
+            name: "micro".into(),
+            rig: Rig::oxford_spires_scaled(0.125),
+            keyframes: 12,
+            gt_spacing: 0.05,
+            ..Self::ci(seed)
+        }
+    }
+
     /// The full loop: 720x540 images, a 64-beam lidar, 120 keyframes around the block, closing on itself.
     pub fn default_preset(seed: u64) -> Self {
         let motion = MotionParams::default();
@@ -86,10 +98,11 @@ impl Preset {
         }
     }
 
-    /// A preset by name (`ci` or `default`).
+    /// A preset by name (`ci`, `default`, or `micro` for the parity tests).
     pub fn by_name(name: &str, seed: u64) -> Option<Self> {
         match name {
             "ci" => Some(Self::ci(seed)),
+            "micro" => Some(Self::micro(seed)),
             "default" => Some(Self::default_preset(seed)),
             _ => None,
         }

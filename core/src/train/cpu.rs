@@ -277,12 +277,55 @@ pub(crate) fn appearance_row<'a>(
     }
 }
 
+/// Inference evaluates the colour MLP only at samples whose volume-rendering weight is at least this,
+/// and at each ray's last non-empty sample (the background colour): the others add < 1e-4 of their
+/// colour each to the ray (at most 24 × 1e-4 = 0.6/255 in all, in practice far less). Both engines apply
+/// the same rule. Training evaluates every sample (the colour loss differentiates through all of them).
+pub const INFERENCE_MIN_WEIGHT: f32 = 1e-4;
+
+/// Which samples (ray-major, `n` per ray) inference colours: [`INFERENCE_MIN_WEIGHT`].
+pub fn inference_colour_samples(density: &[f32], t: &[f32], n: usize) -> Vec<bool> {
+    let r = density.len() / n.max(1);
+    let mut keep = vec![false; r * n];
+    keep.par_chunks_mut(n.max(1))
+        .enumerate()
+        .for_each(|(ray, k)| {
+            let te = &t[ray * (n + 1)..(ray + 1) * (n + 1)];
+            let mut w = vec![0.0f32; n];
+            sampler::weights(&density[ray * n..(ray + 1) * n], te, &mut w);
+            let mut last = None;
+            for i in 0..n {
+                k[i] = w[i] >= INFERENCE_MIN_WEIGHT;
+                if te[i + 1] - te[i] > 0.0 {
+                    last = Some(i);
+                }
+            }
+            if let Some(i) = last {
+                k[i] = true;
+            }
+        });
+    keep
+}
+
 fn shade(
     cfg: &ModelConfig,
     params: &Params,
     rays: &[TrainRay],
     t: &[f32],
     normal_rays: usize,
+) -> Result<Shaded, GpuError> {
+    shade_with(cfg, params, rays, t, normal_rays, false)
+}
+
+/// [`shade`]; with `inference`, colours only [`inference_colour_samples`] (the rest get black, and the
+/// returned `colour_in` / `colour` hold the selected rows only: nothing differentiates them).
+fn shade_with(
+    cfg: &ModelConfig,
+    params: &Params,
+    rays: &[TrainRay],
+    t: &[f32],
+    normal_rays: usize,
+    inference: bool,
 ) -> Result<Shaded, GpuError> {
     let n = cfg.sampler.samples;
     let r = rays.len();
@@ -305,24 +348,37 @@ fn shade(
     let ci = c_cfg.input;
     let geo = cfg.field.geo_features;
     let mean = params.mean_appearance(cfg);
-    let mut colour_in = vec![0.0f32; r * n * ci];
+    let density: Vec<f32> = (0..r * n).map(|i| density_of(eval.logit(i)).0).collect();
+    // Rows of the colour MLP: every sample, or inference's selection.
+    let rows: Vec<usize> = if inference {
+        let keep = inference_colour_samples(&density, t, n);
+        (0..r * n).filter(|&i| keep[i]).collect()
+    } else {
+        (0..r * n).collect()
+    };
+    let mut colour_in = vec![0.0f32; rows.len() * ci];
     colour_in
         .par_chunks_mut(ci)
         .enumerate()
         .with_min_len(256)
-        .for_each(|(i, row)| {
+        .for_each(|(k, row)| {
+            let i = rows[k];
             let ray = &rays[i / n];
             let out = &eval.mlp.output[i * eval.out_dim..(i + 1) * eval.out_dim];
             let app = appearance_row(cfg, params, &mean, ray.appearance);
             colour_input(ray.dir, &out[1..1 + geo], app, row);
         });
     let colour = mlp::forward_fast(&c_cfg, &params.tensors[COLOUR], &colour_in)?;
-    let samples = (0..r * n)
-        .map(|i| Sample {
-            rgb: [0, 1, 2].map(|c| colour.output[i * 3 + c]),
-            density: density_of(eval.logit(i)).0,
+    let mut samples: Vec<Sample> = density
+        .iter()
+        .map(|&d| Sample {
+            rgb: [0.0; 3],
+            density: d,
         })
         .collect();
+    for (k, &i) in rows.iter().enumerate() {
+        samples[i].rgb = [0, 1, 2].map(|c| colour.output[k * 3 + c]);
+    }
     let (normals, grad_len) = if normal_rays > 0 {
         let mut nv = vec![[0.0f32; 3]; r * n];
         let mut lens = vec![0.0f32; nm];
@@ -640,7 +696,7 @@ pub fn render_rays_with(
     for part in rays.chunks(chunk.max(1)) {
         let r = part.len();
         let (_, _, t) = propose_with(sampling, cfg, params, part, None, 1.0, false)?;
-        let sh = shade(cfg, params, part, &t, if normals { r } else { 0 })?;
+        let sh = shade_with(cfg, params, part, &t, if normals { r } else { 0 }, true)?;
         let ivs = intervals(&t, r, n);
         let rb = RayBatch {
             samples_per_ray: n,
@@ -706,6 +762,56 @@ mod tests {
         assert_eq!(median_depth(&[0.0, 0.5, 0.1, 0.0], &edges), 3.0);
         assert_eq!(median_depth(&[0.0, 0.8, 0.1, 0.0], &edges), 2.625);
         assert_eq!(median_depth(&[0.1, 0.1, 0.1, 0.1], &edges), 5.0);
+    }
+
+    /// Inference colours only the samples that matter: on a field dense enough to hide what lies behind
+    /// its surfaces, some samples are skipped, and the render differs from colouring every sample by
+    /// less than the skipped weight allows (n × INFERENCE_MIN_WEIGHT per channel).
+    #[test]
+    fn inference_colours_only_what_the_ray_shows() {
+        let cfg = ModelConfig::tiny();
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(11);
+        let mut params = Params::init(&cfg, 4).unwrap();
+        for t in &mut params.tensors {
+            for v in t.iter_mut() {
+                *v += rng.random_range(-0.3..0.3f32);
+            }
+        }
+        // A dense field: the density logit's bias high, so rays saturate within a few samples.
+        let d = cfg.density_mlp();
+        let last = d.layers()[d.n_layers() - 1];
+        params.tensors[DENSITY][last.bias] = 6.0;
+        let rays = random_rays(&mut rng, 200);
+        let n = cfg.sampler.samples;
+        let (_, _, t) = propose(&cfg, &params, &rays, None, 1.0, false).unwrap();
+        let full = shade_with(&cfg, &params, &rays, &t, 0, false).unwrap();
+        let part = shade_with(&cfg, &params, &rays, &t, 0, true).unwrap();
+        let skipped = part.samples.len() - part.colour.output.len() / 3;
+        assert!(skipped > 0, "nothing skipped");
+        let ivs = intervals(&t, rays.len(), n);
+        let render = |sh: &Shaded| {
+            let rb = RayBatch {
+                samples_per_ray: n,
+                samples: &sh.samples,
+                intervals: &ivs,
+                normals: None,
+            };
+            render::render_cpu(&rb, Background::LastSample).unwrap()
+        };
+        let (a, b) = (render(&full), render(&part));
+        let mut worst = 0.0f32;
+        for (x, y) in a.rays.iter().zip(&b.rays) {
+            for c in 0..3 {
+                worst = worst.max((x.rgb[c] - y.rgb[c]).abs());
+            }
+            assert_eq!(x.accumulation, y.accumulation);
+            assert_eq!(x.depth, y.depth);
+        }
+        assert!(
+            worst <= n as f32 * INFERENCE_MIN_WEIGHT,
+            "colour differs by {worst} with {skipped} of {} samples skipped",
+            part.samples.len()
+        );
     }
 
     /// The whole step's analytic gradient for the radiance field's tensors (grid, density MLP, colour MLP,

@@ -111,6 +111,11 @@ struct Work {
     scratch: wgpu::Buffer,
     ray_stats: wgpu::Buffer,
     rays_out: wgpu::Buffer,
+    /// Inference's colour selection: per-ray counts and offsets, selected samples, per-sample rows.
+    sel_count: wgpu::Buffer,
+    sel_offset: wgpu::Buffer,
+    sel_list: wgpu::Buffer,
+    sel_index: wgpu::Buffer,
 }
 
 /// Borrowed final-level buffers of a recorded forward (see [`GpuEngine::final_forward`]).
@@ -224,8 +229,8 @@ impl GpuEngine {
     }
 
     /// Uploads rays for a forward pass without jitter (uncertainty).
-    pub(crate) fn prepare_rays(&mut self, rays: &[TrainRay]) -> Result<(), GpuError> {
-        self.ensure_work(rays.len(), 0)?;
+    pub(crate) async fn prepare_rays(&mut self, rays: &[TrainRay]) -> Result<(), GpuError> {
+        self.ensure_work(rays.len(), 0).await?;
         self.write_rays(rays, None);
         Ok(())
     }
@@ -292,14 +297,49 @@ impl GpuEngine {
         (budget as usize / per_ray.max(1)).max(1)
     }
 
-    fn ensure_work(&mut self, rays: usize, normal_rays: usize) -> Result<(), GpuError> {
+    /// Batch buffers for `rays` rays (`normal_rays` with normals), grown when a batch needs more. An
+    /// allocation the device cannot satisfy is [`GpuError::OutOfMemory`] naming the batch and the limit.
+    async fn ensure_work(&mut self, rays: usize, normal_rays: usize) -> Result<(), GpuError> {
         if let Some(w) = &self.work {
             if w.rays >= rays && w.normal_rays >= normal_rays {
                 return Ok(());
             }
         }
+        // Grow, never shrink; the old buffers go first, so a grown batch does not need both at once.
         let rays = rays.max(self.work.as_ref().map_or(0, |w| w.rays)).max(1);
-        let nm = normal_rays.max(self.work.as_ref().map_or(0, |w| w.normal_rays));
+        let normal_rays = normal_rays.max(self.work.as_ref().map_or(0, |w| w.normal_rays));
+        self.work = None;
+        let scope = self
+            .gpu
+            .device
+            .push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let made = self.alloc_work(rays, normal_rays);
+        if let Some(e) = scope.pop().await {
+            self.work = None;
+            return Err(GpuError::OutOfMemory {
+                adapter: self.gpu.report().name.clone(),
+                what: format!("the work buffers of a {rays}-ray batch ({e})"),
+                bytes: self.work_bytes(rays, normal_rays),
+                max_buffer: self.gpu.report().max_buffer_size,
+            });
+        }
+        made
+    }
+
+    /// Bytes [`Self::alloc_work`] allocates for a batch (for messages).
+    fn work_bytes(&self, rays: usize, normal_rays: usize) -> u64 {
+        let c = &self.cfg;
+        let n = c.sampler.samples;
+        let rows = rays * n + 6 * normal_rays * n;
+        let per_row = c.field.grid.output_dim() * 2
+            + c.density_mlp().output * 2
+            + c.density_mlp().saved_per_row()
+            + c.density_mlp().delta_per_row();
+        let colour = rays * n * (2 * c.colour_mlp().input + c.colour_mlp().delta_per_row() + 20);
+        4 * (rows * (per_row + 3) + colour) as u64
+    }
+
+    fn alloc_work(&mut self, rays: usize, nm: usize) -> Result<(), GpuError> {
         let g = &self.gpu;
         let c = &self.cfg;
         let nl = c.proposals.len() + 1;
@@ -363,6 +403,10 @@ impl GpuEngine {
             scratch: g.output("ray scratch", rays * scratch_stride(c))?,
             ray_stats: g.output("ray stats", rays * stat_stride(c))?,
             rays_out: g.output("rays out", rays * 8)?,
+            sel_count: g.output("colour selection counts", rays)?,
+            sel_offset: g.output("colour selection offsets", rays)?,
+            sel_list: g.output("colour selection", rn)?,
+            sel_index: g.output("colour selection rows", rn)?,
         });
         Ok(())
     }
@@ -443,6 +487,21 @@ impl GpuEngine {
     /// Records the forward chain: proposal levels, final samples (+ FD normals for the first
     /// `normal_rays` rays), the field, and the render inputs.
     async fn record_forward(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        rays: usize,
+        normal_rays: usize,
+        jitter: bool,
+        anneal: f32,
+    ) -> Result<(), GpuError> {
+        self.record_density(enc, rays, normal_rays, jitter, anneal)
+            .await?;
+        self.record_colour(enc, rays, normal_rays).await
+    }
+
+    /// The forward up to the field's density: proposal levels, final samples (+ FD positions), the hash
+    /// grid and the density MLP, and the mean appearance embedding.
+    async fn record_density(
         &self,
         enc: &mut wgpu::CommandEncoder,
         rays: usize,
@@ -601,7 +660,21 @@ impl GpuEngine {
             &u,
             &[(18, &self.params[APPEARANCE]), (19, &w.mean_app)],
         )
-        .await?;
+        .await
+    }
+
+    /// The rest of the forward after [`Self::record_density`]: colour of every sample and the render
+    /// inputs.
+    async fn record_colour(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        rays: usize,
+        normal_rays: usize,
+    ) -> Result<(), GpuError> {
+        let w = self.work.as_ref().expect("work buffers");
+        let c = &self.cfg;
+        let base = self.base_uniform(rays, normal_rays);
+        let n = c.sampler.samples;
         let rn = u32_of(rays * n, "samples")?;
         let u = Uniform {
             count: rn,
@@ -678,7 +751,7 @@ impl GpuEngine {
             )));
         }
         let nm = if sch.normals { batch.normal_rays } else { 0 };
-        self.ensure_work(r, nm)?;
+        self.ensure_work(r, nm).await?;
         self.write_rays(&batch.rays, Some(&batch.jitter));
         let w = self.work.as_ref().expect("work buffers");
         self.gpu
@@ -742,7 +815,7 @@ impl GpuEngine {
                 saved: &w.colour_saved,
                 d_output: &w.d_rgb,
                 scratch: &w.colour_scratch,
-                d_params: &self.grads[COLOUR],
+                d_params: Some(&self.grads[COLOUR]),
                 d_input: Some(&w.d_cin),
             },
             false,
@@ -780,7 +853,7 @@ impl GpuEngine {
                 saved: &w.saved,
                 d_output: &w.d_out,
                 scratch: &w.density_scratch,
-                d_params: &self.grads[DENSITY],
+                d_params: Some(&self.grads[DENSITY]),
                 d_input: Some(&w.d_features),
             },
             false,
@@ -886,7 +959,7 @@ impl GpuEngine {
                     saved: &lv.saved,
                     d_output: &lv.d_out,
                     scratch: &lv.mlp_scratch,
-                    d_params: &self.grads[PROPOSAL + 2 * l + 1],
+                    d_params: Some(&self.grads[PROPOSAL + 2 * l + 1]),
                     d_input: Some(&lv.d_features),
                 },
                 false,
@@ -968,11 +1041,106 @@ impl GpuEngine {
         for part in rays.chunks(chunk) {
             let r = part.len();
             let nm = if normals { r } else { 0 };
-            self.ensure_work(r, nm)?;
+            self.ensure_work(r, nm).await?;
             self.write_rays(part, None);
             let w = self.work.as_ref().expect("work buffers");
+            // Density first; the colour MLP then runs only where inference needs colour
+            // (train::cpu::INFERENCE_MIN_WEIGHT): per-ray counts come back, their prefix goes up.
+            let mut enc = self.gpu.encoder("render density");
+            self.record_density(&mut enc, r, nm, false, 1.0).await?;
+            let base = self.base_uniform(r, nm);
+            let per_ray = Uniform {
+                count: u32_of(r, "rays")?,
+                n_in: n as u32,
+                ..base
+            };
+            self.run(
+                &mut enc,
+                "colour_count",
+                &per_ray,
+                &[(4, &w.t), (5, &w.out), (36, &w.sel_count)],
+            )
+            .await?;
+            let counts = self
+                .gpu
+                .finish_and_read::<u32>(enc, &[(&w.sel_count, r)])
+                .await?
+                .pop()
+                .unwrap_or_default();
+            let mut offsets = Vec::with_capacity(r);
+            let mut m = 0u32;
+            for &k in &counts {
+                offsets.push(m);
+                m += k;
+            }
+            self.gpu
+                .queue
+                .write_buffer(&w.sel_offset, 0, bytemuck::cast_slice(&offsets));
             let mut enc = self.gpu.encoder("render");
-            self.record_forward(&mut enc, r, nm, false, 1.0).await?;
+            self.run(
+                &mut enc,
+                "colour_select",
+                &per_ray,
+                &[
+                    (4, &w.t),
+                    (5, &w.out),
+                    (37, &w.sel_offset),
+                    (38, &w.sel_list),
+                    (39, &w.sel_index),
+                ],
+            )
+            .await?;
+            let sel = Uniform {
+                count: m,
+                ..per_ray
+            };
+            self.run(
+                &mut enc,
+                "colour_input_selected",
+                &sel,
+                &[
+                    (1, &w.b_rays),
+                    (5, &w.out),
+                    (18, &self.params[APPEARANCE]),
+                    (19, &w.mean_app),
+                    (17, &w.colour_in),
+                    (38, &w.sel_list),
+                ],
+            )
+            .await?;
+            mlp::record_forward(
+                &self.gpu,
+                &mut enc,
+                &self.cfg.colour_mlp(),
+                m,
+                &ForwardBuffers {
+                    params: &self.params[COLOUR],
+                    input: &w.colour_in,
+                    output: &w.colour_out,
+                    saved: &w.colour_saved,
+                },
+            )
+            .await?;
+            let per_sample = Uniform {
+                count: u32_of(r * n, "samples")?,
+                ..per_ray
+            };
+            self.run(
+                &mut enc,
+                "shade_selected",
+                &per_sample,
+                &[
+                    (12, &w.colour_out),
+                    (5, &w.out),
+                    (4, &w.t),
+                    (13, &w.samples),
+                    (14, &w.intervals),
+                    (15, &w.normals),
+                    (16, &w.grad_len),
+                    (39, &w.sel_index),
+                ],
+            )
+            .await?;
             render::record_render(
                 &self.gpu,
                 &mut enc,

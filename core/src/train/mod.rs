@@ -102,6 +102,35 @@ impl Default for TrainConfig {
 }
 
 impl TrainConfig {
+    /// The configuration `silvr train` and the studio use for a run of `steps` steps: Adam's learning rate
+    /// decays to 1e-3 over the run, and σ decays by SiLVR's 0.99985 per step, or faster when the run is
+    /// short, so that it reaches its floor by 60% of the run (coarse to fine within any run length).
+    pub fn for_run(mode: Mode, steps: u32, rays_per_batch: usize, seed: u64) -> Self {
+        let mut c = TrainConfig {
+            mode,
+            steps,
+            rays_per_batch,
+            seed,
+            adam: AdamConfig {
+                decay_steps: steps.max(1),
+                lr_final: 1e-3,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        c.schedule_sigma(c.depth_sigma_start, c.depth_sigma_end);
+        c
+    }
+
+    /// Sets the DS-NeRF σ schedule (metres) and the decay that reaches `end` by 60% of the run.
+    pub fn schedule_sigma(&mut self, start: f32, end: f32) {
+        self.depth_sigma_start = start;
+        self.depth_sigma_end = end;
+        let ratio = (end / start) as f64;
+        let needed = ratio.powf(1.0 / (0.6 * self.steps.max(1) as f64)) as f32;
+        self.depth_sigma_decay = needed.min(0.99985);
+    }
+
     /// σ (metres) at `step`.
     pub fn depth_sigma_at(&self, step: u32) -> f32 {
         let s = self.depth_sigma_start as f64 * (self.depth_sigma_decay as f64).powi(step as i32);
@@ -185,6 +214,8 @@ pub struct Trainer {
     pub step: u32,
     /// Loss terms of every step so far (checkpointed, so a resumed run's curve continues).
     pub history: Vec<StepStats>,
+    /// Called with (rays rendered, rays asked for) as a render or an export goes (progress and ETA).
+    pub render_progress: Option<Box<dyn FnMut(usize, usize)>>,
 }
 
 impl Trainer {
@@ -208,6 +239,7 @@ impl Trainer {
             engine,
             step: 0,
             history: Vec::new(),
+            render_progress: None,
         })
     }
 
@@ -340,10 +372,24 @@ impl Trainer {
         rays: &[TrainRay],
         normals: bool,
     ) -> Result<Vec<RenderedRay>, GpuError> {
-        match &mut self.engine {
-            Engine::Cpu => cpu::render_rays(&self.model, &self.params, rays, normals, 4096),
-            Engine::Wgpu(e) => e.render(rays, normals, 4096).await,
+        // Inference batches: large on the GPU (one submit and two readbacks each), the CPU's own chunk
+        // size inside; progress is reported between them.
+        let part = match &self.engine {
+            Engine::Cpu => 16_384,
+            Engine::Wgpu(e) => e.max_rays(normals).clamp(1, 65_536),
+        };
+        let mut out = Vec::with_capacity(rays.len());
+        for chunk in rays.chunks(part) {
+            let mut r = match &mut self.engine {
+                Engine::Cpu => cpu::render_rays(&self.model, &self.params, chunk, normals, 4096)?,
+                Engine::Wgpu(e) => e.render(chunk, normals, part).await?,
+            };
+            out.append(&mut r);
+            if let Some(p) = &mut self.render_progress {
+                p(out.len(), rays.len());
+            }
         }
+        Ok(out)
     }
 
     /// Brings the host copies of the parameters and Adam moments up to date (a no-op on the CPU).
@@ -419,6 +465,7 @@ impl Trainer {
             engine,
             step: h.step,
             history: h.history,
+            render_progress: None,
         })
     }
 }

@@ -46,8 +46,6 @@ struct Work {
     d_features: wgpu::Buffer,
     d_pos: wgpu::Buffer,
     g: wgpu::Buffer,
-    d_colour_params: wgpu::Buffer,
-    d_density_params: wgpu::Buffer,
 }
 
 /// The Fisher accumulators on the device and the batch work buffers.
@@ -111,8 +109,6 @@ impl GpuFisher {
             d_features: g.output("dY/dfeatures", rn * c.field.grid.output_dim())?,
             d_pos: g.output("dY/dgrid position", rn * 3)?,
             g: g.output("dY/dposition", rn * 12)?,
-            d_colour_params: g.output("colour param scratch", cm.n_params())?,
-            d_density_params: g.output("density param scratch", dm.n_params())?,
         });
         Ok(())
     }
@@ -169,7 +165,7 @@ impl GpuFisher {
         if r == 0 {
             return Ok(());
         }
-        engine.prepare_rays(rays)?;
+        engine.prepare_rays(rays).await?;
         self.ensure(engine, r)?;
         let w = self.work.as_ref().expect("work buffers");
         engine
@@ -182,6 +178,7 @@ impl GpuFisher {
         let rn = u32_of(r * n, "samples")?;
         let mut enc = engine.gpu.encoder("uncertainty batch");
         engine.record_final_forward(&mut enc, r).await?;
+        engine.gpu.profile_scope("uncertainty");
         let f = engine.final_forward();
         let w = self.work.as_ref().expect("work buffers");
         let cm = c.colour_mlp();
@@ -233,7 +230,7 @@ impl GpuFisher {
                         saved: f.colour_saved,
                         d_output: &w.d_rgb,
                         scratch: f.colour_scratch,
-                        d_params: &w.d_colour_params,
+                        d_params: None,
                         d_input: Some(&w.d_cin),
                     },
                     false,
@@ -259,7 +256,7 @@ impl GpuFisher {
                     saved: f.saved,
                     d_output: &w.d_out,
                     scratch: f.density_scratch,
-                    d_params: &w.d_density_params,
+                    d_params: None,
                     d_input: Some(&w.d_features),
                 },
                 false,
