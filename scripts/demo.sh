@@ -3,7 +3,8 @@
 # `silvr demo` (e.g. --preset default --seed 3 --out my-demo).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-[ "${SILVR_SKIP_SETUP:-0}" = 1 ] || scripts/setup.sh
+# The demo needs only the Vulkan driver (lavapipe where there is no GPU), not the studio's tools.
+[ "${SILVR_SKIP_SETUP:-0}" = 1 ] || scripts/setup.sh demo
 export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
 if [ $# -eq 0 ]; then set -- --out silvr-demo; fi
 exec cargo run --release -q -p silvr -- demo "$@"

@@ -1,17 +1,30 @@
 #!/usr/bin/env bash
-# Installs what SiLVR Studio's build and tests need, skipping whatever is already there.
-# Debian bookworm (root): Mesa 25 lavapipe from bookworm-backports (4-7x faster than bookworm's Mesa 22),
-# Chromium + ChromeDriver for browser tests, clang (mcap's lz4/zstd for wasm32), the wasm32 target,
-# wasm-bindgen-cli pinned to the crate's version, trunk, and the npm packages of web/ (binaryen 132, playwright-core).
+# Installs what one purpose of SiLVR Studio needs, skipping whatever is already there:
+#   scripts/setup.sh demo     the native binary and the demo: Mesa 25 lavapipe (the Vulkan driver when there
+#                             is no GPU) and vulkan-tools
+#   scripts/setup.sh studio   + the studio build: clang (mcap's lz4/zstd for wasm32), the wasm32 target,
+#                             wasm-bindgen-cli pinned to the crate's version, trunk, web/'s npm packages
+#                             (binaryen 132, playwright-core)
+#   scripts/setup.sh [test]   + the browser tests: Chromium + ChromeDriver (the default: everything)
+# Debian bookworm (root): Mesa 25 comes from bookworm-backports (4-7x faster than bookworm's Mesa 22).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+purpose="${1:-test}"
+case "$purpose" in
+  demo|studio|test) ;;
+  *) echo "usage: scripts/setup.sh [demo|studio|test]" >&2; exit 2 ;;
+esac
 
 log() { printf '\033[1m[setup]\033[0m %s\n' "$*"; }
 SUDO=""
 [ "$(id -u)" = 0 ] || SUDO="sudo"
 
+pkgs=(vulkan-tools)
+[ "$purpose" = demo ] || pkgs+=(clang)
+[ "$purpose" = test ] && pkgs+=(chromium chromium-driver)
 need_apt=()
-for p in chromium chromium-driver clang vulkan-tools; do
+for p in "${pkgs[@]}"; do
   dpkg -s "$p" >/dev/null 2>&1 || need_apt+=("$p")
 done
 mesa_ok=0
@@ -42,6 +55,11 @@ if [ ${#need_apt[@]} -gt 0 ] || [ $mesa_ok = 0 ]; then
   fi
 fi
 
+if [ "$purpose" = demo ]; then
+  log "ready (demo)"
+  exit 0
+fi
+
 rustup target list --installed 2>/dev/null | grep -q wasm32-unknown-unknown || { log "rustup target add wasm32"; rustup target add wasm32-unknown-unknown; }
 
 if ! (command -v wasm-bindgen >/dev/null && wasm-bindgen --version | grep -q ' 0.2.130'); then
@@ -60,4 +78,4 @@ if [ ! -x web/node_modules/.bin/wasm-opt ] || [ web/package-lock.json -nt web/no
   log "npm ci (web/: binaryen, playwright-core)"
   npm ci --prefix web --no-audit --no-fund --loglevel=error
 fi
-log "ready"
+log "ready ($purpose)"

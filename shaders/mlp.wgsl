@@ -12,51 +12,44 @@
 //   its delta offset), then [chunks][n_params] partial parameter gradients, one per chunk of rows.
 //
 // Entry points (64 threads per workgroup; dispatch possibly folded into 2-D:
-// index = (wg.y * nwg.x + wg.x) * 64 + local index). lavapipe (the CPU driver) runs 8 lanes per SIMD
-// vector and pays dearly for per-lane loads from storage, while a load whose address is the same on every
-// lane is one load and a broadcast; the kernels are shaped around that, and around its coroutine barriers
-// (no barrier inside a loop that keeps per-row arrays alive: one dispatch per layer instead).
-//   forward_layer    layer `current`, one thread per row: the layer's weights are staged in workgroup memory
-//                    as [fan_out][ceil(fan_in / 4)] vec4 rows (zero-padded; the padding lives only there),
-//                    the row's input sits in a private vec4 array, eight outputs per pass. Input from
-//                    `input` (layer 0) or `saved`; output to `saved` (hidden) or `output` (last).
-//   backward_layer   layer `current`, one thread per row, last layer first: the layer's output gradient
-//                    (from dL/doutput for the last layer, else from scratch), times the transposed weights
-//                    (staged as [fan_in][ceil(fan_out / 4)]), masked by the ReLU below, into the scratch
-//                    slot of the layer below, or into dL/dinput for layer 0.
-//   backward_weights one workgroup per (chunk of rows, layer, block of 16 input columns), one lane per
-//                    output j: sum over the chunk's rows of delta_j * a_k (a_k = 1 for the bias column),
-//                    64-row tiles of inputs staged in workgroup memory; one partial per chunk.
+// index = (wg.y * nwg.x + wg.x) * 64 + local index). Each pipeline is specialised to one layer's shape by
+// the prelude the engine compiles in front of this file (see below). lavapipe (the CPU driver) runs 8 lanes
+// per SIMD vector and pays dearly for per-lane loads from storage, while a load whose address is the same
+// on every lane is cheaper from workgroup memory than from a storage or uniform buffer (measured); the
+// kernels are shaped around that, and around its coroutine barriers (no barrier inside a loop that keeps
+// per-row arrays alive: one dispatch per layer instead).
+//   forward_layer    one thread per row: the layer's weights are staged in workgroup memory as
+//                    [fan_out][ceil(fan_in / 4)] vec4 rows (zero-padded; the padding lives only there), the
+//                    row's input sits in a private vec4 array. Input from `input` (layer 0) or `saved`;
+//                    output to `saved` (hidden) or `output` (last).
+//   backward_layer   one thread per row, last layer first: the layer's output gradient (from dL/doutput for
+//                    the last layer, else from scratch), times the transposed weights (staged as
+//                    [fan_in][ceil(fan_out / 4)]), masked by the ReLU below, into the scratch slot of the
+//                    layer below, or into dL/dinput for layer 0.
+//   backward_weights one workgroup per (chunk of rows, block of WB input columns) of one layer, one lane
+//                    per output j: sum over the chunk's rows of delta_j * a_k, the first block also of
+//                    delta_j (the bias), 64-row tiles of inputs staged in workgroup memory; one partial
+//                    per chunk. Skipped, with reduce_grads, when only dL/dinput is wanted.
 //   reduce_grads     one thread per parameter: the chunk partials summed in chunk order (deterministic),
 //                    written over d_params, or added to it when accumulating. No float atomics anywhere.
 
 const WG: u32 = 64u;
-// Rows of the input tile staged per step of backward_weights, and input columns per block.
+// Rows of the input tile staged per step of backward_weights.
 const TILE_ROWS: u32 = 64u;
 
 const FLAG_D_INPUT: u32 = 1u;
 const FLAG_ACCUMULATE: u32 = 2u;
-const ACT_SIGMOID: u32 = 1u;
 
 struct Mlp {
     n: u32,
-    layers: u32,
-    output_act: u32,
     flags: u32,
     n_params: u32,
-    saved_stride: u32,
-    delta_stride: u32,
     // First scratch word of the partial parameter gradients.
     partial_offset: u32,
     chunk_rows: u32,
     chunks: u32,
-    // backward_weights workgroups per chunk (blocks over all layers).
-    blocks: u32,
-    // The layer of a forward_layer / backward_layer dispatch.
-    current: u32,
-    // Per layer l: [2l] = (fan_in, fan_out, weight offset, bias offset),
-    // [2l + 1] = (delta offset, saved offset of its output, first block, block count).
-    layer: array<vec4<u32>, 18>,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 @group(0) @binding(0) var<uniform> mlp: Mlp;

@@ -42,7 +42,7 @@ use crate::shaders;
 /// Widest layer (input, hidden or output) the kernels take: one 64 × 64 f32 weight matrix is exactly the
 /// 16 KiB of workgroup memory the portable baseline grants.
 pub const MAX_WIDTH: usize = 64;
-/// Most hidden layers (the WGSL uniform holds a fixed table of layers).
+/// Most hidden layers (a bound on the pipelines one MLP compiles: one per layer and kernel).
 pub const MAX_HIDDEN_LAYERS: usize = 8;
 /// Rows per partial parameter gradient in the backward: the batch is cut into chunks of this many rows,
 /// each summed by its own workgroups, then the partials are added in order.
@@ -52,7 +52,6 @@ const WORKGROUP: u32 = 64;
 /// Most input columns per parameter-gradient workgroup (`WB` in mlp.wgsl; 16 and 64 were slower on
 /// lavapipe: more passes over the deltas, or accumulators spilled).
 const BLOCK: usize = 32;
-const MAX_LAYERS: usize = MAX_HIDDEN_LAYERS + 1;
 
 const KERNEL: Kernel = Kernel {
     name: "mlp",
@@ -742,11 +741,9 @@ const FLAG_ACCUMULATE: u32 = 2;
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 struct MlpUniform {
-    /// n, layers, output activation, flags, n_params, saved stride, delta stride, partial offset,
-    /// chunk rows, chunks, weight-gradient blocks, current layer.
-    head: [u32; 12],
-    /// Per layer: (fan_in, fan_out, weights, bias), (delta, saved, first block, blocks).
-    layer: [[u32; 4]; 2 * MAX_LAYERS],
+    /// n, flags, n_params, partial offset, chunk rows, chunks, padding (the layer's shape is in the
+    /// pipeline's prelude, [`layer_prelude`]).
+    head: [u32; 8],
 }
 
 /// Input columns per parameter-gradient workgroup of `layer`: [`BLOCK`], or fewer (a multiple of 4) for
@@ -761,32 +758,21 @@ fn layer_blocks(layer: &LayerInfo) -> usize {
     layer.fan_in.div_ceil(layer_block(layer)).max(1)
 }
 
-fn uniform_for(cfg: &MlpConfig, n: u32, flags: u32, current: usize) -> MlpUniform {
-    let mut u = MlpUniform::zeroed();
-    let mut blocks = 0;
-    for (l, ly) in cfg.layers().iter().enumerate() {
-        let nb = layer_blocks(ly);
-        u.layer[2 * l] = [ly.fan_in, ly.fan_out, ly.weights, ly.bias].map(|v| v as u32);
-        u.layer[2 * l + 1] = [ly.delta, ly.saved, blocks, nb].map(|v| v as u32);
-        blocks += nb;
-    }
+fn uniform_for(cfg: &MlpConfig, n: u32, flags: u32) -> MlpUniform {
     let chunks = MlpConfig::chunks(n as usize);
-    u.head = [
-        n as usize,
-        cfg.n_layers(),
-        (cfg.output_activation == Activation::Sigmoid) as usize,
-        flags as usize,
-        cfg.n_params(),
-        cfg.saved_per_row(),
-        cfg.delta_per_row(),
-        n as usize * cfg.delta_per_row(),
-        CHUNK_ROWS,
-        chunks,
-        blocks,
-        current,
-    ]
-    .map(|v| v as u32);
-    u
+    MlpUniform {
+        head: [
+            n as usize,
+            flags as usize,
+            cfg.n_params(),
+            n as usize * cfg.delta_per_row(),
+            CHUNK_ROWS,
+            chunks,
+            0,
+            0,
+        ]
+        .map(|v| v as u32),
+    }
 }
 
 /// WGSL constants that specialise `forward_layer` / `backward_layer` to layer `l` of `cfg` (see the header
@@ -913,7 +899,7 @@ pub async fn record_forward(
         return Ok(());
     }
     for l in 0..config.n_layers() {
-        let u = gpu.uniform("mlp.uniform", &uniform_for(config, n, 0, l));
+        let u = gpu.uniform("mlp.uniform", &uniform_for(config, n, 0));
         gpu.dispatch_variant(
             encoder,
             &KERNEL,
@@ -969,7 +955,7 @@ pub async fn record_backward(
     if accumulate {
         flags |= FLAG_ACCUMULATE;
     }
-    let uniform = uniform_for(config, n, flags, 0);
+    let uniform = uniform_for(config, n, flags);
     let u = gpu.uniform("mlp.uniform", &uniform);
     if n > 0 {
         // The binding must exist even when dL/dinput is not wanted.
@@ -982,14 +968,13 @@ pub async fn record_backward(
             }
         };
         for l in (0..config.n_layers()).rev() {
-            let ul = gpu.uniform("mlp.uniform", &uniform_for(config, n, flags, l));
             gpu.dispatch_variant(
                 encoder,
                 &KERNEL,
                 &layer_prelude(config, Some(l)),
                 "backward_layer",
                 &[
-                    (0, &ul),
+                    (0, &u),
                     (1, buffers.params),
                     (4, buffers.saved),
                     (5, buffers.d_output),
