@@ -133,6 +133,9 @@ enum Command {
         /// Training rays rendered for the exported point cloud (0: none).
         #[arg(long, default_value_t = 200_000)]
         export_rays: usize,
+        /// Held-out views rendered and scored after training (default: all; 0 for none).
+        #[arg(long)]
+        render_views: Option<usize>,
         /// Depth that places an exported point on its ray: expected (SiLVR's exporter) or median
         /// (nerfacto's depth, which never floats between two surfaces at an object's silhouette).
         #[arg(long, default_value = "expected")]
@@ -322,6 +325,7 @@ fn main() {
             downscale,
             seed,
             export_rays,
+            render_views,
             export_depth,
             depth_sigma,
         } => train::run(&train::TrainArgs {
@@ -338,6 +342,7 @@ fn main() {
             downscale,
             seed,
             export_rays,
+            render_views,
             export_depth,
             quiet: false,
             view_normals: true,
@@ -710,6 +715,7 @@ fn demo(
             downscale: overrides.downscale,
             seed,
             export_rays: demo_export_rays(name),
+            render_views: None,
             export_depth: ExportDepth::default(),
             quiet: true,
             // The demo reports PSNR/SSIM; normal renders are `silvr train`'s.

@@ -30,6 +30,8 @@ pub struct TrainArgs {
     pub downscale: u32,
     pub seed: u64,
     pub export_rays: usize,
+    /// Held-out views to render and score (`None`: all).
+    pub render_views: Option<usize>,
     pub export_depth: silvr_core::train::export::ExportDepth,
     pub quiet: bool,
     /// Normals for the first held-out view and the exported points (six more density evaluations per
@@ -223,7 +225,14 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
     let t_render = Instant::now();
     let mut rendered_rays = 0usize;
     let mut views = Vec::new();
-    for (k, &i) in trainer.data.val.clone().iter().enumerate() {
+    let val: Vec<usize> = trainer
+        .data
+        .val
+        .iter()
+        .copied()
+        .take(a.render_views.unwrap_or(usize::MAX))
+        .collect();
+    for (k, &i) in val.iter().enumerate() {
         // Normals for the first held-out view only: they cost six more density evaluations per sample.
         let normals = a.view_normals && k == 0;
         let v = pollster::block_on(trainer.render_view(i, normals))?;
@@ -320,7 +329,12 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         &a.out.join("train.json"),
         serde_json::to_string_pretty(&json)?.as_bytes(),
     )?;
-    if !a.quiet && summary.views.is_empty() {
+    if !a.quiet && summary.views.is_empty() && !trainer.data.val.is_empty() {
+        eprintln!(
+            "trained {} steps in {:.1} s; held-out views not rendered (--render-views 0)",
+            summary.steps, summary.train_s
+        );
+    } else if !a.quiet && summary.views.is_empty() {
         eprintln!(
             "trained {} steps in {:.1} s; the dataset holds out no view, so there is no held-out PSNR",
             summary.steps, summary.train_s

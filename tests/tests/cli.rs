@@ -278,7 +278,15 @@ fn wgsl_training_killed_mid_run_resumes_from_its_last_checkpoint() {
                 "--steps",
                 steps,
             ])
-            .args(["--checkpoint-every", "10", "--export-rays", "0", "--out"])
+            .args([
+                "--checkpoint-every",
+                "10",
+                "--export-rays",
+                "0",
+                "--render-views",
+                "0",
+            ])
+            .arg("--out")
             .arg(&out);
         c
     };
