@@ -535,12 +535,8 @@ fn profile(a: &BenchArgs, steps: u32) -> Result<()> {
     let rows = gpu.profile_take();
     let total: f64 = rows.iter().map(|r| r.seconds).sum::<f64>() / steps as f64;
     eprintln!(
-        "{} model, {} rays, {:?} on {adapter}: step {:.1} ms wall, {:.1} ms in passes",
-        a.model,
-        a.rays,
-        mode,
-        wall * 1e3,
-        total * 1e3
+        "{} model, {} rays, {:?} on {adapter}",
+        a.model, a.rays, mode
     );
     let out = print_profile(&rows, steps, wall * steps as f64);
     // Inference: one held-out view (or a training view) of this field, pass by pass.

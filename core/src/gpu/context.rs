@@ -256,7 +256,6 @@ impl Gpu {
             Some(p) => {
                 let rows = p.rows();
                 p.totals.clear();
-                p.order.clear();
                 rows
             }
             None => Vec::new(),

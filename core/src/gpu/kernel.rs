@@ -117,7 +117,6 @@ impl Gpu {
         } else {
             bytes.to_vec()
         };
-        self.check_lost()?;
         Ok(self.buffer_with(
             label,
             &contents,
@@ -159,7 +158,6 @@ impl Gpu {
     pub fn output(&self, label: &str, words: usize) -> Result<wgpu::Buffer, GpuError> {
         let bytes = (words.max(1) * 4) as u64;
         self.check_size(label, bytes)?;
-        self.check_lost()?;
         match self.poison {
             Some(pattern) => Ok(self.buffer_with(
                 label,

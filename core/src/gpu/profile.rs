@@ -4,7 +4,6 @@
 //! kernel entry; each record also sums the bytes of the buffers the pass binds, an upper bound on the
 //! memory it moves (a gather from a large table touches less). Off by default: no queries, no cost.
 
-use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
 /// How passes are timed.
@@ -44,9 +43,8 @@ pub(crate) struct ProfilerState {
     /// Passes with timestamps written and not yet resolved: (key, bytes).
     pub pending: Vec<((String, String), u64)>,
     pub query_set: Option<wgpu::QuerySet>,
-    pub totals: BTreeMap<(String, String), PassTotals>,
-    /// First-seen order of the keys, so the report follows the step.
-    pub order: Vec<(String, String)>,
+    /// Totals per (scope, pass), in first-seen order so the report follows the step (a few dozen keys).
+    pub totals: Vec<((String, String), PassTotals)>,
 }
 
 /// Shared handle (clones of a [`super::Gpu`] share one profiler).
@@ -59,33 +57,33 @@ impl ProfilerState {
             scope: String::new(),
             pending: Vec::new(),
             query_set,
-            totals: BTreeMap::new(),
-            order: Vec::new(),
+            totals: Vec::new(),
         }
     }
 
     pub fn add(&mut self, key: (String, String), seconds: f64, bytes: u64) {
-        if !self.totals.contains_key(&key) {
-            self.order.push(key.clone());
-        }
-        let t = self.totals.entry(key).or_default();
+        let i = match self.totals.iter().position(|(k, _)| *k == key) {
+            Some(i) => i,
+            None => {
+                self.totals.push((key, PassTotals::default()));
+                self.totals.len() - 1
+            }
+        };
+        let t = &mut self.totals[i].1;
         t.calls += 1;
         t.seconds += seconds;
         t.bytes += bytes;
     }
 
     pub fn rows(&self) -> Vec<PassRow> {
-        self.order
+        self.totals
             .iter()
-            .map(|k| {
-                let t = &self.totals[k];
-                PassRow {
-                    scope: k.0.clone(),
-                    pass: k.1.clone(),
-                    calls: t.calls,
-                    seconds: t.seconds,
-                    bytes_bound: t.bytes,
-                }
+            .map(|(k, t)| PassRow {
+                scope: k.0.clone(),
+                pass: k.1.clone(),
+                calls: t.calls,
+                seconds: t.seconds,
+                bytes_bound: t.bytes,
             })
             .collect()
     }

@@ -313,34 +313,27 @@ impl GpuEngine {
             .gpu
             .device
             .push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let made = self.alloc_work(rays, normal_rays);
+        let bytes = self.alloc_work(rays, normal_rays)?;
         if let Some(e) = scope.pop().await {
             self.work = None;
             return Err(GpuError::OutOfMemory {
                 adapter: self.gpu.report().name.clone(),
                 what: format!("the work buffers of a {rays}-ray batch ({e})"),
-                bytes: self.work_bytes(rays, normal_rays),
+                bytes,
                 max_buffer: self.gpu.report().max_buffer_size,
             });
         }
-        made
+        Ok(())
     }
 
-    /// Bytes [`Self::alloc_work`] allocates for a batch (for messages).
-    fn work_bytes(&self, rays: usize, normal_rays: usize) -> u64 {
-        let c = &self.cfg;
-        let n = c.sampler.samples;
-        let rows = rays * n + 6 * normal_rays * n;
-        let per_row = c.field.grid.output_dim() * 2
-            + c.density_mlp().output * 2
-            + c.density_mlp().saved_per_row()
-            + c.density_mlp().delta_per_row();
-        let colour = rays * n * (2 * c.colour_mlp().input + c.colour_mlp().delta_per_row() + 20);
-        4 * (rows * (per_row + 3) + colour) as u64
-    }
-
-    fn alloc_work(&mut self, rays: usize, nm: usize) -> Result<(), GpuError> {
-        let g = &self.gpu;
+    /// Allocates the batch buffers; returns the bytes asked for.
+    fn alloc_work(&mut self, rays: usize, nm: usize) -> Result<u64, GpuError> {
+        let gpu = &self.gpu;
+        let mut bytes = 0u64;
+        let mut out = |label: &str, words: usize| {
+            bytes += words.max(1) as u64 * 4;
+            gpu.output(label, words)
+        };
         let c = &self.cfg;
         let nl = c.proposals.len() + 1;
         let mut levels = Vec::new();
@@ -350,17 +343,17 @@ impl GpuEngine {
             let rows = rays * n;
             levels.push(LevelBufs {
                 n,
-                s: g.output("level s", rays * (n + 1))?,
-                t: g.output("level t", rays * (n + 1))?,
-                pos: g.output("level positions", rows * 3)?,
-                features: g.output("level features", rows * f)?,
-                out: g.output("level logits", rows)?,
-                saved: g.output("level saved", rows * m.saved_per_row())?,
-                weights: g.output("level weights", rows)?,
-                density: g.output("level density", rows)?,
-                d_out: g.output("level dL/dlogit", rows)?,
-                d_features: g.output("level dL/dfeatures", rows * f)?,
-                mlp_scratch: g.output("level mlp scratch", m.scratch_words(rows))?,
+                s: out("level s", rays * (n + 1))?,
+                t: out("level t", rays * (n + 1))?,
+                pos: out("level positions", rows * 3)?,
+                features: out("level features", rows * f)?,
+                out: out("level logits", rows)?,
+                saved: out("level saved", rows * m.saved_per_row())?,
+                weights: out("level weights", rows)?,
+                density: out("level density", rows)?,
+                d_out: out("level dL/dlogit", rows)?,
+                d_features: out("level dL/dfeatures", rows * f)?,
+                mlp_scratch: out("level mlp scratch", m.scratch_words(rows))?,
             });
         }
         let n = c.sampler.samples;
@@ -372,43 +365,43 @@ impl GpuEngine {
         self.work = Some(Work {
             rays,
             normal_rays: nm,
-            b_rays: g.output("rays", rays * 8)?,
-            targets: g.output("targets", rays * 8)?,
-            jitter: g.output("jitter", rays * nl)?,
+            b_rays: out("rays", rays * 8)?,
+            targets: out("targets", rays * 8)?,
+            jitter: out("jitter", rays * nl)?,
             levels,
-            s: g.output("final s", rays * (n + 1))?,
-            t: g.output("final t", rays * (n + 1))?,
-            pos: g.output("final positions", rows * 3)?,
-            features: g.output("final features", rows * f)?,
-            out: g.output("density mlp out", rows * dm.output)?,
-            saved: g.output("density mlp saved", rows * dm.saved_per_row())?,
-            colour_in: g.output("colour input", rn * cm.input)?,
-            colour_out: g.output("colour out", rn * 3)?,
-            colour_saved: g.output("colour saved", rn * cm.saved_per_row())?,
-            samples: g.output("samples", rn * 4)?,
-            intervals: g.output("intervals", rn * 2)?,
-            normals: g.output("normals", rn * 3)?,
-            grad_len: g.output("grad len", nm * n)?,
-            losses: g.output("ray losses", rays * 4)?,
-            d_samples: g.output("dL/dsamples", rn * 4)?,
-            d_normals: g.output("dL/dnormals", rn * 3)?,
-            d_rgb: g.output("dL/drgb", rn * 3)?,
-            d_cin: g.output("dL/dcolour input", rn * cm.input)?,
-            colour_scratch: g.output("colour scratch", cm.scratch_words(rn))?,
-            d_out: g.output("dL/ddensity out", rows * dm.output)?,
-            d_features: g.output("dL/dfeatures", rows * f)?,
-            density_scratch: g.output("density scratch", dm.scratch_words(rows))?,
-            w_fin: g.output("final weights", rn)?,
-            mean_app: g.output("mean appearance", c.field.appearance_dim)?,
-            scratch: g.output("ray scratch", rays * scratch_stride(c))?,
-            ray_stats: g.output("ray stats", rays * stat_stride(c))?,
-            rays_out: g.output("rays out", rays * 8)?,
-            sel_count: g.output("colour selection counts", rays)?,
-            sel_offset: g.output("colour selection offsets", rays)?,
-            sel_list: g.output("colour selection", rn)?,
-            sel_index: g.output("colour selection rows", rn)?,
+            s: out("final s", rays * (n + 1))?,
+            t: out("final t", rays * (n + 1))?,
+            pos: out("final positions", rows * 3)?,
+            features: out("final features", rows * f)?,
+            out: out("density mlp out", rows * dm.output)?,
+            saved: out("density mlp saved", rows * dm.saved_per_row())?,
+            colour_in: out("colour input", rn * cm.input)?,
+            colour_out: out("colour out", rn * 3)?,
+            colour_saved: out("colour saved", rn * cm.saved_per_row())?,
+            samples: out("samples", rn * 4)?,
+            intervals: out("intervals", rn * 2)?,
+            normals: out("normals", rn * 3)?,
+            grad_len: out("grad len", nm * n)?,
+            losses: out("ray losses", rays * 4)?,
+            d_samples: out("dL/dsamples", rn * 4)?,
+            d_normals: out("dL/dnormals", rn * 3)?,
+            d_rgb: out("dL/drgb", rn * 3)?,
+            d_cin: out("dL/dcolour input", rn * cm.input)?,
+            colour_scratch: out("colour scratch", cm.scratch_words(rn))?,
+            d_out: out("dL/ddensity out", rows * dm.output)?,
+            d_features: out("dL/dfeatures", rows * f)?,
+            density_scratch: out("density scratch", dm.scratch_words(rows))?,
+            w_fin: out("final weights", rn)?,
+            mean_app: out("mean appearance", c.field.appearance_dim)?,
+            scratch: out("ray scratch", rays * scratch_stride(c))?,
+            ray_stats: out("ray stats", rays * stat_stride(c))?,
+            rays_out: out("rays out", rays * 8)?,
+            sel_count: out("colour selection counts", rays)?,
+            sel_offset: out("colour selection offsets", rays)?,
+            sel_list: out("colour selection", rn)?,
+            sel_index: out("colour selection rows", rn)?,
         });
-        Ok(())
+        Ok(bytes)
     }
 
     fn base_uniform(&self, rays: usize, normal_rays: usize) -> Uniform {
@@ -496,7 +489,7 @@ impl GpuEngine {
     ) -> Result<(), GpuError> {
         self.record_density(enc, rays, normal_rays, jitter, anneal)
             .await?;
-        self.record_colour(enc, rays, normal_rays).await
+        self.record_colour(enc, rays, normal_rays, None).await
     }
 
     /// The forward up to the field's density: proposal levels, final samples (+ FD positions), the hash
@@ -663,42 +656,51 @@ impl GpuEngine {
         .await
     }
 
-    /// The rest of the forward after [`Self::record_density`]: colour of every sample and the render
-    /// inputs.
+    /// The rest of the forward after [`Self::record_density`]: the colour MLP and the render inputs.
+    /// `selected`: `None` colours every sample (training); `Some(m)` only inference's `m` selected
+    /// samples (listed by `colour_select`), the rest black.
     async fn record_colour(
         &self,
         enc: &mut wgpu::CommandEncoder,
         rays: usize,
         normal_rays: usize,
+        selected: Option<u32>,
     ) -> Result<(), GpuError> {
         let w = self.work.as_ref().expect("work buffers");
         let c = &self.cfg;
         let base = self.base_uniform(rays, normal_rays);
         let n = c.sampler.samples;
         let rn = u32_of(rays * n, "samples")?;
-        let u = Uniform {
+        let per_sample = Uniform {
             count: rn,
             n_in: n as u32,
             ..base
         };
-        self.run(
-            enc,
-            "colour_input",
-            &u,
-            &[
-                (1, &w.b_rays),
-                (5, &w.out),
-                (18, &self.params[APPEARANCE]),
-                (19, &w.mean_app),
-                (17, &w.colour_in),
-            ],
-        )
-        .await?;
+        let rows = selected.unwrap_or(rn);
+        let mut inputs = vec![
+            (1, &w.b_rays),
+            (5, &w.out),
+            (18, &self.params[APPEARANCE]),
+            (19, &w.mean_app),
+            (17, &w.colour_in),
+        ];
+        let (input_entry, shade_entry) = match selected {
+            None => ("colour_input", "shade"),
+            Some(_) => {
+                inputs.push((38, &w.sel_list));
+                ("colour_input_selected", "shade_selected")
+            }
+        };
+        let u = Uniform {
+            count: rows,
+            ..per_sample
+        };
+        self.run(enc, input_entry, &u, &inputs).await?;
         mlp::record_forward(
             &self.gpu,
             enc,
             &c.colour_mlp(),
-            rn,
+            rows,
             &ForwardBuffers {
                 params: &self.params[COLOUR],
                 input: &w.colour_in,
@@ -707,7 +709,7 @@ impl GpuEngine {
             },
         )
         .await?;
-        let bind = vec![
+        let mut bind = vec![
             (12, &w.colour_out),
             (5, &w.out),
             (4, &w.t),
@@ -716,7 +718,10 @@ impl GpuEngine {
             (15, &w.normals),
             (16, &w.grad_len),
         ];
-        self.run(enc, "shade", &u, &bind).await
+        if selected.is_some() {
+            bind.push((39, &w.sel_index));
+        }
+        self.run(enc, shade_entry, &per_sample, &bind).await
     }
 
     fn ray_batch<'a>(&self, w: &'a Work, rays: usize, normals: bool) -> GpuRayBatch<'a> {
@@ -1090,57 +1095,7 @@ impl GpuEngine {
                 ],
             )
             .await?;
-            let sel = Uniform {
-                count: m,
-                ..per_ray
-            };
-            self.run(
-                &mut enc,
-                "colour_input_selected",
-                &sel,
-                &[
-                    (1, &w.b_rays),
-                    (5, &w.out),
-                    (18, &self.params[APPEARANCE]),
-                    (19, &w.mean_app),
-                    (17, &w.colour_in),
-                    (38, &w.sel_list),
-                ],
-            )
-            .await?;
-            mlp::record_forward(
-                &self.gpu,
-                &mut enc,
-                &self.cfg.colour_mlp(),
-                m,
-                &ForwardBuffers {
-                    params: &self.params[COLOUR],
-                    input: &w.colour_in,
-                    output: &w.colour_out,
-                    saved: &w.colour_saved,
-                },
-            )
-            .await?;
-            let per_sample = Uniform {
-                count: u32_of(r * n, "samples")?,
-                ..per_ray
-            };
-            self.run(
-                &mut enc,
-                "shade_selected",
-                &per_sample,
-                &[
-                    (12, &w.colour_out),
-                    (5, &w.out),
-                    (4, &w.t),
-                    (13, &w.samples),
-                    (14, &w.intervals),
-                    (15, &w.normals),
-                    (16, &w.grad_len),
-                    (39, &w.sel_index),
-                ],
-            )
-            .await?;
+            self.record_colour(&mut enc, r, nm, Some(m)).await?;
             render::record_render(
                 &self.gpu,
                 &mut enc,
