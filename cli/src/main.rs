@@ -13,6 +13,7 @@ use silvr_core::synthetic::{generate, Preset};
 use silvr_core::train::export::ExportDepth;
 
 mod ingest;
+mod serve;
 mod train;
 mod uncertainty;
 
@@ -221,6 +222,9 @@ enum Command {
         #[arg(long, default_value = "auto")]
         backend: String,
     },
+    /// Serve the built studio and a folder of reconstructions over HTTP, and print the link that opens
+    /// the folder's PLY files in the studio.
+    Serve(serve::ServeCmd),
 }
 
 #[derive(clap::Args)]
@@ -401,6 +405,7 @@ fn main() {
         }),
         Command::BenchSampler(a) => train::bench_sampler(&a),
         Command::Bench { points, reps, json } => bench(points, reps, json),
+        Command::Serve(c) => serve::run(c),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
@@ -805,6 +810,10 @@ fn demo(
         "[demo] report: {} ({:.1} s)",
         path.display(),
         total.elapsed().as_secs_f64()
+    );
+    eprintln!(
+        "[demo] open the result in the studio: {}",
+        serve::open_command(out)
     );
     Ok(())
 }

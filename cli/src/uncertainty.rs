@@ -20,24 +20,7 @@ pub const FIELDS: [(&str, Modality); 3] = [
     ("log_std_combined", Modality::Combined),
 ];
 
-/// Filtering rule (documented, not tuned per scene): Tukey's (inner) fence on the exported points'
-/// combined log10 std: drop a point above Q3 + [`FILTER_FENCE`]·(Q3 − Q1), i.e. an outlier of the cloud's
-/// own uncertainty distribution. The fence scales with the spread, so it adapts to how many rays the pass
-/// used and to the scene's extent without a per-scene constant. (The first rule, median + 0.5 decades,
-/// cut well-observed facades on the ci world, 15 % of recall, and too little on the default world.)
-pub const FILTER_FENCE: f32 = 1.5;
-
-/// The default threshold on `log_std_combined`: Q3 + [`FILTER_FENCE`]·IQR over the finite values.
-pub fn default_threshold(values: &[f32]) -> f32 {
-    let mut v: Vec<f32> = values.iter().cloned().filter(|x| x.is_finite()).collect();
-    if v.is_empty() {
-        return f32::INFINITY;
-    }
-    v.sort_by(f32::total_cmp);
-    let q = |f: f64| v[((v.len() - 1) as f64 * f).round() as usize];
-    let (q1, q3) = (q(0.25), q(0.75));
-    q3 + FILTER_FENCE * (q3 - q1)
-}
+use silvr_core::uncertainty::filter::default_threshold;
 
 pub struct UncertaintyArgs {
     pub model_dir: PathBuf,
@@ -212,7 +195,9 @@ pub fn filter(cloud: &PointCloud, field: &str, threshold: f32) -> PointCloud {
     let Some(v) = cloud.scalar(field) else {
         return cloud.clone();
     };
-    let keep: Vec<usize> = (0..v.len()).filter(|&i| v[i] <= threshold).collect();
+    let keep: Vec<usize> = (0..v.len())
+        .filter(|&i| uncertainty::filter::keeps(v[i], threshold))
+        .collect();
     cloud.select(&keep)
 }
 
@@ -482,25 +467,4 @@ fn write(path: &Path, bytes: &[u8]) -> Result<()> {
 
 fn write_ply_atomic(path: &Path, cloud: &PointCloud) -> Result<()> {
     write_ply(path, cloud).with_context(|| format!("writing {}", path.display()))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The fence is Q3 + 1.5 IQR of the finite values: an outlier rule, so a cloud whose uncertainties
-    /// are all alike keeps every point and a far tail is cut.
-    #[test]
-    fn default_threshold_is_tukeys_fence() {
-        let mut v: Vec<f32> = (0..=100).map(|i| i as f32).collect();
-        v.push(f32::NAN);
-        assert_eq!(default_threshold(&v), 75.0 + 1.5 * 50.0);
-        let flat = [2.0f32; 10];
-        assert_eq!(default_threshold(&flat), 2.0);
-        assert_eq!(default_threshold(&[f32::NAN]), f32::INFINITY);
-        let mut tail = vec![1.0f32; 95];
-        tail.extend([1.2, 1.4, 6.0, 6.0, 6.0]);
-        let t = default_threshold(&tail);
-        assert!((1.0..6.0).contains(&t), "{t}");
-    }
 }

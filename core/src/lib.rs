@@ -30,3 +30,4 @@ pub mod shaders;
 pub mod synthetic;
 pub mod train;
 pub mod uncertainty;
+pub mod viewer;

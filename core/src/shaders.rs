@@ -19,3 +19,7 @@ pub const TRAIN: &str = include_str!("../../shaders/train.wgsl");
 /// The uncertainty pass: render Jacobians, position gradients to world space, Fisher accumulation
 /// (`uncertainty::gpu`).
 pub const UNCERTAINTY: &str = include_str!("../../shaders/uncertainty.wgsl");
+
+/// The studio's point-cloud view: instanced screen-space points, colour maps, the uncertainty threshold
+/// (`viewer`).
+pub const POINTS: &str = include_str!("../../shaders/points.wgsl");

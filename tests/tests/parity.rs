@@ -14,6 +14,12 @@
 //! agree to 1e-3, the 50-step means of the whole curve to 5 % (measured within 2 %), and the outcomes
 //! to the bounds: held-out PSNR within 0.5 dB, accuracy within 15 %; the uncertainty pass over
 //! one field on both engines: Fisher diagonals within 1e-3 of the largest entry, AUSE within 0.01.
+//!
+//! That field is the CPU-trained one, which is the same bits on every run (the WGSL run is not: its
+//! atomic adds make each WGSL-trained field a little different). Over a fixed field the two passes differ
+//! only by f32 rounding, but a trained field's sharp density peaks amplify a sample position's rounding
+//! into its Jacobian, by an amount that depends on the field: over WGSL-trained fields the worst entry
+//! ranged from 1.7e-4 to 1.8e-3 of the largest between runs, so a bound on those would be a coin toss.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -177,26 +183,27 @@ fn wgsl_training_matches_the_cpu_reference_over_a_run() {
     assert!(pg > 18.0, "WGSL held-out PSNR {pg} dB: nothing learnt");
 
     let tmp = tempfile::tempdir().unwrap();
-    let (ac, _) = accuracy(&mut cpu, dataset, tmp.path(), "cpu");
-    let (ag, ev_g) = accuracy(&mut wgsl, dataset, tmp.path(), "wgsl");
+    let (ac, ev_c) = accuracy(&mut cpu, dataset, tmp.path(), "cpu");
+    let (ag, _) = accuracy(&mut wgsl, dataset, tmp.path(), "wgsl");
     eprintln!("accuracy: cpu {ac:.4} m, wgsl {ag:.4} m");
     assert!(
         (ac - ag).abs() <= 0.15 * ac,
         "accuracy cpu {ac} m vs wgsl {ag} m"
     );
 
-    // The uncertainty pass on both engines over the same (WGSL-trained) field.
+    // The uncertainty pass on both engines over the same (CPU-trained, reproducible) field.
     let ucfg = UncertaintyConfig {
         batches: 4,
         rays_per_batch: 1024,
         ..Default::default()
     };
-    let ck = pollster::block_on(wgsl.checkpoint()).unwrap();
+    let ck = pollster::block_on(cpu.checkpoint()).unwrap();
     let data = TrainData::load(dataset, &LoadOptions::default()).unwrap();
-    let mut on_cpu = Trainer::resume(data, ck, Backend::Cpu).unwrap();
-    let fg = pollster::block_on(uncertainty::compute_fisher(&mut wgsl, &ucfg, |_, _| {})).unwrap();
-    let fc =
-        pollster::block_on(uncertainty::compute_fisher(&mut on_cpu, &ucfg, |_, _| {})).unwrap();
+    let mut on_wgsl = Trainer::resume(data, ck, Backend::Wgpu(gpu.clone())).unwrap();
+    assert_eq!(on_wgsl.engine.name(), "wgpu");
+    let fg =
+        pollster::block_on(uncertainty::compute_fisher(&mut on_wgsl, &ucfg, |_, _| {})).unwrap();
+    let fc = pollster::block_on(uncertainty::compute_fisher(&mut cpu, &ucfg, |_, _| {})).unwrap();
     assert_eq!((fg.rays, fg.lidar_rays), (fc.rays, fc.lidar_rays));
     for (what, g, c) in [
         ("colour", &fg.colour, &fc.colour),
@@ -208,12 +215,20 @@ fn wgsl_training_matches_the_cpu_reference_over_a_run() {
             .zip(c.iter())
             .map(|(a, b)| (a - b).abs() / scale)
             .fold(0.0f32, f32::max);
-        eprintln!("Fisher {what}: worst difference {worst:.2e} of the largest entry");
+        let l1 = g
+            .iter()
+            .zip(c.iter())
+            .map(|(a, b)| f64::from((a - b).abs()))
+            .sum::<f64>()
+            / c.iter().map(|v| f64::from(v.abs())).sum::<f64>().max(1e-30);
+        eprintln!(
+            "Fisher {what}: worst difference {worst:.2e} of the largest entry, L1 difference {l1:.2e} of the total"
+        );
         assert!(worst < 1e-3, "Fisher {what}: {worst}");
     }
-    // AUSE of the WGSL cloud by each engine's read-out.
-    let frame = wgsl.data.frame;
-    let scene: Vec<[f32; 3]> = ev_g
+    // AUSE of the CPU cloud by each engine's read-out.
+    let frame = cpu.data.frame;
+    let scene: Vec<[f32; 3]> = ev_c
         .reconstruction
         .positions
         .iter()
@@ -222,7 +237,7 @@ fn wgsl_training_matches_the_cpu_reference_over_a_run() {
     let ug = uncertainty::read_out(&fg, &scene, frame.scale);
     let uc = uncertainty::read_out(&fc, &scene, frame.scale);
     let ause = |u: &[f32]| {
-        sparsify::sparsification(&ev_g.rec_to_gt, u)
+        sparsify::sparsification(&ev_c.rec_to_gt, u)
             .expect("points")
             .ause
     };

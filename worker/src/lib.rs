@@ -9,6 +9,14 @@
 //! | worker → page | `{type: "projection", id, seed, n, elapsed_ms, passed, check: SelfCheck}` after each kernel self-check (`id` is `null` for the one at startup) |
 //! | worker → page | `{type: "error", id, stage, message, detail}`: `stage` is `"webgpu"` (no usable adapter), `"projection"`, `"message"` (a message the worker does not understand) or `"panic"` |
 //! | page → worker | `{type: "run-check", id?, n?, seed?}`: run the projection self-check again |
+//! | page → worker | `{type: "canvas", canvas: OffscreenCanvas, width, height}` (transferred): the view draws there |
+//! | page → worker | `{type: "resize", width, height}`, `{type: "view", view: ViewState}`: draw again |
+//! | page → worker | `{type: "open-url", id, url}`, `{type: "open-file", id, file: File}`: open a PLY as a layer |
+//! | page → worker | `{type: "download", id, layer, view}`: the layer's kept points as PLY; `{type: "bench", id, frames}` |
+//! | worker → page | `{type: "progress", id, source, stage, loaded, total}` while a file streams in |
+//! | worker → page | `{type: "layer", id, layer: LayerInfo}`, `{type: "load-error", id, source, message}` |
+//! | worker → page | `{type: "filter", counts: FilterCounts}` after a view or layer change; `{type: "frame", n, ms}` after each draw |
+//! | worker → page | `{type: "download", id, name, bytes: Uint8Array}`, `{type: "bench", id, frames, ms_per_frame, points}` |
 //!
 //! Natively the crate builds (the message types and [`run_check`] are plain Rust) but the `worker` binary
 //! does nothing: the browser is its only home.
@@ -18,6 +26,8 @@ use silvr_core::camera::{CameraModel, Distortion};
 use silvr_core::gpu::{AdapterReport, Gpu};
 use silvr_core::lidar::project::{self, SelfCheck};
 
+pub mod studio;
+pub mod view;
 #[cfg(target_arch = "wasm32")]
 mod web;
 #[cfg(target_arch = "wasm32")]
@@ -59,6 +69,8 @@ pub enum Stage {
     Projection,
     /// The page sent something the worker does not understand.
     Message,
+    /// The view (canvas, rendering, downloads).
+    View,
     /// The worker panicked; it is dead afterwards.
     Panic,
 }
@@ -113,6 +125,33 @@ pub enum ToPage {
         passed: bool,
         check: SelfCheck,
     },
+    /// A file streaming in (`stage`: `download`, `parse`, `upload`); `total` when known.
+    Progress {
+        id: u32,
+        source: String,
+        stage: String,
+        loaded: f64,
+        total: Option<f64>,
+    },
+    /// A file opened as a layer.
+    Layer { id: u32, layer: studio::LayerInfo },
+    /// A file that could not be opened: the source and the problem.
+    LoadError {
+        id: u32,
+        source: String,
+        message: String,
+    },
+    /// The filter's outcome for the view in force.
+    Filter { counts: studio::FilterCounts },
+    /// A frame was drawn (`ms`: submit to done on the GPU queue).
+    Frame { n: u32, ms: f64, points: u64 },
+    /// `frames` frames drawn back to back.
+    Bench {
+        id: u32,
+        frames: u32,
+        ms_per_frame: f64,
+        points: u64,
+    },
     Error {
         id: Option<u32>,
         stage: Stage,
@@ -124,7 +163,7 @@ pub enum ToPage {
 }
 
 /// Messages from the page to the worker.
-#[derive(Clone, Debug, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(tag = "type", rename_all = "kebab-case")]
 pub enum FromPage {
     /// Runs the projection self-check (defaults: [`STARTUP_POINTS`] points, seed [`STARTUP_SEED`]).
@@ -136,6 +175,33 @@ pub enum FromPage {
         #[serde(default)]
         seed: Option<u64>,
     },
+    /// The canvas (its `OffscreenCanvas` travels beside the message) changed size.
+    Resize { width: u32, height: u32 },
+    /// Draw this view.
+    View { view: view::ViewState },
+    /// Fetch a PLY over http(s) and open it as a layer.
+    OpenUrl { id: u32, url: String },
+    /// The kept points of layer `layer` under `view` as PLY bytes.
+    Download {
+        id: u32,
+        layer: u32,
+        view: view::ViewState,
+    },
+    /// Draw `frames` frames back to back and report the time per frame.
+    Bench { id: u32, frames: u32 },
+}
+
+impl FromPage {
+    /// The request id the answer carries, where the message has one.
+    pub fn id(&self) -> Option<u32> {
+        match self {
+            FromPage::RunCheck { id, .. } => *id,
+            FromPage::OpenUrl { id, .. }
+            | FromPage::Download { id, .. }
+            | FromPage::Bench { id, .. } => Some(*id),
+            FromPage::Resize { .. } | FromPage::View { .. } => None,
+        }
+    }
 }
 
 /// Runs the projection kernel against its CPU reference on `n` generated points and words the outcome
@@ -182,6 +248,14 @@ pub async fn handle(gpu: &Gpu, msg: FromPage) -> ToPage {
             )
             .await
         }
+        // The view's messages need the worker's layers and canvas (`web.rs`), not just a device.
+        other => ToPage::Error {
+            id: other.id(),
+            stage: Stage::Message,
+            message: "this message needs the studio's view, which only the worker in a browser has"
+                .into(),
+            detail: None,
+        },
     }
 }
 

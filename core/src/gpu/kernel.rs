@@ -129,7 +129,12 @@ impl Gpu {
     /// A buffer holding `contents` (a multiple of 4 bytes), written through the queue rather than mapped
     /// at creation: on a lost device wgpu's mapped-at-creation path panics, this one lets the next
     /// submit or readback report the loss.
-    fn buffer_with(&self, label: &str, contents: &[u8], usage: wgpu::BufferUsages) -> wgpu::Buffer {
+    pub(crate) fn buffer_with(
+        &self,
+        label: &str,
+        contents: &[u8],
+        usage: wgpu::BufferUsages,
+    ) -> wgpu::Buffer {
         let size = (contents.len() as u64).next_multiple_of(4).max(4);
         let b = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),

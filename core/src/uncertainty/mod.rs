@@ -14,6 +14,7 @@
 //! * [`sparsify`]: sparsification curves, AUSE and the error-vs-uncertainty plots.
 
 pub mod cpu;
+pub mod filter;
 pub mod gpu;
 pub mod sparsify;
 

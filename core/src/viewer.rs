@@ -1,0 +1,594 @@
+//! The studio's point-cloud view: reconstructions (one layer per file or submap) in GPU buffers and a
+//! render pipeline that draws them as screen-space squares or discs (`shaders/points.wgsl`), coloured by
+//! RGB, by a colour-mapped scalar (each `log_std_*`, `error_m`) or by a solid layer colour, with the
+//! uncertainty threshold applied in the vertex shader.
+//!
+//! Why here and not in the worker: the same device as the engine draws the view, and a native test renders
+//! through lavapipe and compares pixels with the CPU reference below ([`project`], [`turbo`]).
+//!
+//! Buffers are split into chunks that fit the adapter's `max_buffer_size`, never one giant buffer; clouds
+//! above [`ViewCloud::MAX_POINTS`] are decimated with a stated stride. Positions are stored relative to
+//! each layer's centre in f32 and the camera works relative to a reference point, so a city-sized map in
+//! metric UTM-like coordinates keeps millimetre precision near the camera.
+
+use glam::{DMat4, DVec3, DVec4, Mat4, Vec3};
+
+use crate::gpu::{Gpu, GpuError};
+use crate::pointcloud::PointCloud;
+use crate::shaders;
+
+/// The scalar properties the studio colours and filters by, in the order it offers them.
+pub const UNCERTAINTY_FIELDS: [&str; 3] = ["log_std_combined", "log_std_colour", "log_std_depth"];
+/// The evaluator's per-point distance to ground truth (`silvr eval --error-ply`), metres.
+pub const ERROR_FIELD: &str = "error_m";
+
+/// Google's Turbo colour map (polynomial approximation; the WGSL uses the same coefficients): `t` in
+/// [0, 1] (clamped) → RGB, clamped to [0, 1] (the polynomial dips just below 0 at the red end).
+pub fn turbo(t: f32) -> [f32; 3] {
+    let t = t.clamp(0.0, 1.0);
+    let v4 = [1.0, t, t * t, t * t * t];
+    let v2 = [v4[2] * v4[2], v4[3] * v4[2]];
+    let dot4 = |c: [f32; 4]| v4[0] * c[0] + v4[1] * c[1] + v4[2] * c[2] + v4[3] * c[3];
+    let dot2 = |c: [f32; 2]| v2[0] * c[0] + v2[1] * c[1];
+    [
+        dot4([0.135_721_38, 4.615_392_6, -42.660_324, 132.131_08]) + dot2([-152.942_4, 59.286_38]),
+        dot4([0.091_402_61, 2.194_188_4, 4.842_966_6, -14.185_033])
+            + dot2([4.277_298_6, 2.829_566]),
+        dot4([0.106_673_3, 12.641_946, -60.582_05, 110.362_77]) + dot2([-89.903_11, 27.348_25]),
+    ]
+    .map(|c| c.clamp(0.0, 1.0))
+}
+
+/// One named scalar of a cloud with what the studio needs to colour and filter by it.
+#[derive(Clone, Debug)]
+pub struct Scalar {
+    pub name: String,
+    pub values: Vec<f32>,
+    /// Every non-NaN value, ascending (`total_cmp`): the kept count of any threshold is one binary search.
+    sorted: Vec<f32>,
+}
+
+impl Scalar {
+    pub fn new(name: &str, values: Vec<f32>) -> Self {
+        let mut sorted: Vec<f32> = values.iter().copied().filter(|v| !v.is_nan()).collect();
+        sorted.sort_by(f32::total_cmp);
+        Self {
+            name: name.to_string(),
+            values,
+            sorted,
+        }
+    }
+
+    /// Points kept by `value <= threshold`, the native filter's rule (NaN is never kept).
+    pub fn kept(&self, threshold: f32) -> usize {
+        if threshold.is_nan() {
+            return 0;
+        }
+        self.sorted.partition_point(|&v| v <= threshold)
+    }
+
+    /// The value at quantile `q` of the finite values (nearest rank), if any.
+    pub fn quantile(&self, q: f64) -> Option<f32> {
+        let finite: &[f32] = {
+            let lo = self.sorted.partition_point(|v| *v == f32::NEG_INFINITY);
+            let hi = self.sorted.partition_point(|v| *v < f32::INFINITY);
+            &self.sorted[lo..hi]
+        };
+        (!finite.is_empty())
+            .then(|| finite[((finite.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize])
+    }
+
+    /// Smallest and largest finite value.
+    pub fn range(&self) -> Option<(f32, f32)> {
+        Some((self.quantile(0.0)?, self.quantile(1.0)?))
+    }
+}
+
+/// A cloud as the view holds it: f32 positions relative to `origin`, RGBA8 colours, the scalars.
+#[derive(Clone, Debug)]
+pub struct ViewCloud {
+    /// Centre of the cloud's bounds (metres, the file's frame).
+    pub origin: DVec3,
+    pub positions: Vec<[f32; 3]>,
+    /// RGBA8 packed little-endian (R in the low byte); grey where the file has no colour.
+    pub colours: Vec<u32>,
+    pub has_rgb: bool,
+    pub scalars: Vec<Scalar>,
+    /// Points in the file.
+    pub total: usize,
+    /// Every `stride`-th point is kept (1: all of them).
+    pub stride: usize,
+    /// Bounds of the kept points (metres, the file's frame).
+    pub min: DVec3,
+    pub max: DVec3,
+}
+
+impl ViewCloud {
+    /// Largest number of points the studio keeps of one cloud (more are decimated, and it says so).
+    pub const MAX_POINTS: usize = 20_000_000;
+
+    /// The view of `cloud`, keeping at most `max_points` (every k-th point beyond that). Points with a
+    /// non-finite coordinate are dropped (they cannot be drawn); their count is `total - positions.len()`
+    /// when `stride` is 1.
+    pub fn from_cloud(cloud: &PointCloud, max_points: usize) -> Self {
+        let total = cloud.len();
+        let stride = total.div_ceil(max_points.max(1)).max(1);
+        let keep: Vec<usize> = (0..total)
+            .step_by(stride)
+            .filter(|&i| cloud.positions[i].is_finite())
+            .collect();
+        let (mut min, mut max) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+        for &i in &keep {
+            min = min.min(cloud.positions[i]);
+            max = max.max(cloud.positions[i]);
+        }
+        if keep.is_empty() {
+            (min, max) = (DVec3::ZERO, DVec3::ZERO);
+        }
+        let origin = (min + max) * 0.5;
+        let positions = keep
+            .iter()
+            .map(|&i| (cloud.positions[i] - origin).as_vec3().to_array())
+            .collect();
+        let colours = match &cloud.colors {
+            Some(c) => keep
+                .iter()
+                .map(|&i| u32::from_le_bytes([c[i][0], c[i][1], c[i][2], 255]))
+                .collect(),
+            None => vec![u32::from_le_bytes([170, 170, 170, 255]); keep.len()],
+        };
+        let scalars = cloud
+            .scalars
+            .iter()
+            .map(|(name, v)| Scalar::new(name, keep.iter().map(|&i| v[i]).collect()))
+            .collect();
+        Self {
+            origin,
+            positions,
+            colours,
+            has_rgb: cloud.colors.is_some(),
+            scalars,
+            total,
+            stride,
+            min,
+            max,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    pub fn scalar(&self, name: &str) -> Option<&Scalar> {
+        self.scalars.iter().find(|s| s.name == name)
+    }
+
+    /// The points kept by `field <= threshold`, as a cloud in the file's frame (what the studio
+    /// downloads; the same rule and the same PLY writer as the native `points_filtered.ply`).
+    pub fn filtered(&self, field: &str, threshold: f32) -> Option<PointCloud> {
+        let s = self.scalar(field)?;
+        let keep: Vec<usize> = (0..self.len())
+            .filter(|&i| s.values[i] <= threshold)
+            .collect();
+        let mut out = PointCloud::new();
+        out.positions = keep
+            .iter()
+            .map(|&i| self.origin + Vec3::from_array(self.positions[i]).as_dvec3())
+            .collect();
+        if self.has_rgb {
+            out.colors = Some(
+                keep.iter()
+                    .map(|&i| {
+                        let b = self.colours[i].to_le_bytes();
+                        [b[0], b[1], b[2]]
+                    })
+                    .collect(),
+            );
+        }
+        for sc in &self.scalars {
+            out.set_scalar(&sc.name, keep.iter().map(|&i| sc.values[i]).collect());
+        }
+        Some(out)
+    }
+}
+
+/// How a layer is coloured.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Colouring {
+    /// The file's RGB (grey where it has none).
+    Rgb,
+    /// Scalar `index` of the layer through [`turbo`], `lo` at blue and `hi` at red.
+    Map { index: usize, lo: f32, hi: f32 },
+    /// One colour for the whole layer (RGB in [0, 1]).
+    Solid([f32; 3]),
+}
+
+/// The camera of one frame: `view_proj` maps points relative to `reference` to clip space.
+#[derive(Clone, Copy, Debug)]
+pub struct Frame {
+    pub reference: DVec3,
+    pub view_proj: Mat4,
+    pub width: u32,
+    pub height: u32,
+    pub point_size: f32,
+    pub round: bool,
+    pub background: [f64; 3],
+}
+
+impl Frame {
+    /// A perspective camera at `eye` looking at `target` (z up), vertical field of view `fov_y` (rad),
+    /// with `reference` as the origin of the f32 maths.
+    pub fn look_at(
+        eye: DVec3,
+        target: DVec3,
+        fov_y: f64,
+        (near, far): (f64, f64),
+        (width, height): (u32, u32),
+        reference: DVec3,
+    ) -> Mat4 {
+        let up = if (target - eye).normalize_or_zero().cross(DVec3::Z).length() < 1e-6 {
+            DVec3::Y
+        } else {
+            DVec3::Z
+        };
+        let (e, t) = (eye - reference, target - reference);
+        // Right-handed view (camera looks down -z), WebGPU clip depth in [0, 1].
+        let f = (t - e).normalize();
+        let s = f.cross(up).normalize();
+        let u = s.cross(f);
+        let view = DMat4::from_cols(
+            DVec4::new(s.x, u.x, -f.x, 0.0),
+            DVec4::new(s.y, u.y, -f.y, 0.0),
+            DVec4::new(s.z, u.z, -f.z, 0.0),
+            DVec4::new(-s.dot(e), -u.dot(e), f.dot(e), 1.0),
+        );
+        let aspect = width.max(1) as f64 / height.max(1) as f64;
+        let h = 1.0 / (0.5 * fov_y).tan();
+        let r = far / (near - far);
+        let proj = DMat4::from_cols(
+            DVec4::new(h / aspect, 0.0, 0.0, 0.0),
+            DVec4::new(0.0, h, 0.0, 0.0),
+            DVec4::new(0.0, 0.0, r, -1.0),
+            DVec4::new(0.0, 0.0, r * near, 0.0),
+        );
+        (proj * view).as_mat4()
+    }
+}
+
+/// One layer to draw this frame.
+pub struct LayerDraw<'a> {
+    pub layer: &'a GpuLayer,
+    pub colouring: Colouring,
+    /// Scalar index and threshold: points whose value is not `<= threshold` are hidden.
+    pub filter: Option<(usize, f32)>,
+}
+
+struct Chunk {
+    points: u32,
+    positions: wgpu::Buffer,
+    colours: wgpu::Buffer,
+    scalars: Vec<wgpu::Buffer>,
+}
+
+/// A cloud on the device, in chunks that fit the adapter's buffer limits.
+pub struct GpuLayer {
+    chunks: Vec<Chunk>,
+    origin: DVec3,
+    points: usize,
+}
+
+impl GpuLayer {
+    pub fn points(&self) -> usize {
+        self.points
+    }
+
+    pub fn origin(&self) -> DVec3 {
+        self.origin
+    }
+
+    /// GPU bytes held by the layer.
+    pub fn bytes(&self) -> u64 {
+        self.chunks
+            .iter()
+            .map(|c| {
+                c.positions.size()
+                    + c.colours.size()
+                    + c.scalars.iter().map(|s| s.size()).sum::<u64>()
+            })
+            .sum()
+    }
+}
+
+/// Size of the per-draw uniform block (`View` in `points.wgsl`), padded to WebGPU's 256-byte
+/// `minUniformBufferOffsetAlignment`.
+const UNIFORM_STRIDE: u64 = 256;
+
+/// The render pipeline of the point view, for one target format.
+pub struct PointRenderer {
+    pipeline: wgpu::RenderPipeline,
+    layout: wgpu::BindGroupLayout,
+    pub format: wgpu::TextureFormat,
+}
+
+/// Depth format of the view.
+pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+
+impl PointRenderer {
+    /// Compiles `points.wgsl` for `format` (a non-sRGB format: colours are written as they are encoded,
+    /// the way a browser canvas shows them). A WGSL or pipeline error comes back as [`GpuError::Kernel`].
+    pub async fn new(gpu: &Gpu, format: wgpu::TextureFormat) -> Result<Self, GpuError> {
+        let device = &gpu.device;
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("points"),
+            source: wgpu::ShaderSource::Wgsl(shaders::POINTS.into()),
+        });
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("points view"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: true,
+                    min_binding_size: None,
+                },
+                count: None,
+            }],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("points"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let attr = |location, format| wgpu::VertexAttribute {
+            format,
+            offset: 0,
+            shader_location: location,
+        };
+        let a_pos = [attr(0, wgpu::VertexFormat::Float32x3)];
+        let a_rgb = [attr(1, wgpu::VertexFormat::Unorm8x4)];
+        let a_val = [attr(2, wgpu::VertexFormat::Float32)];
+        let a_flt = [attr(3, wgpu::VertexFormat::Float32)];
+        let per_point = |stride, attributes| {
+            Some(wgpu::VertexBufferLayout {
+                array_stride: stride,
+                step_mode: wgpu::VertexStepMode::Instance,
+                attributes,
+            })
+        };
+        let buffers = [
+            per_point(12, &a_pos[..]),
+            per_point(4, &a_rgb[..]),
+            per_point(4, &a_val[..]),
+            per_point(4, &a_flt[..]),
+        ];
+        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("points"),
+            layout: Some(&pipeline_layout),
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs"),
+                compilation_options: Default::default(),
+                buffers: &buffers,
+            },
+            primitive: wgpu::PrimitiveState {
+                topology: wgpu::PrimitiveTopology::TriangleStrip,
+                ..Default::default()
+            },
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH_FORMAT,
+                depth_write_enabled: Some(true),
+                depth_compare: Some(wgpu::CompareFunction::Less),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some("fs"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format,
+                    blend: None,
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        if let Some(err) = scope.pop().await {
+            return Err(GpuError::Kernel {
+                kernel: "points".into(),
+                detail: err.to_string(),
+            });
+        }
+        Ok(Self {
+            pipeline,
+            layout,
+            format,
+        })
+    }
+
+    /// Uploads `cloud` in chunks of at most `max_buffer_size / 12` points.
+    pub fn upload(&self, gpu: &Gpu, cloud: &ViewCloud) -> Result<GpuLayer, GpuError> {
+        let limit = gpu.device.limits().max_buffer_size;
+        let per_chunk = ((limit / 12) as usize).clamp(1, 1 << 24);
+        let mut chunks = Vec::new();
+        let mut start = 0;
+        while start < cloud.len() {
+            let end = (start + per_chunk).min(cloud.len());
+            // Each buffer holds at most 12 bytes per point of the chunk: within `max_buffer_size`.
+            let vertex = |label: &str, bytes: &[u8]| -> Result<wgpu::Buffer, GpuError> {
+                gpu.check_lost()?;
+                Ok(gpu.buffer_with(
+                    label,
+                    bytes,
+                    wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+                ))
+            };
+            chunks.push(Chunk {
+                points: (end - start) as u32,
+                positions: vertex(
+                    "view positions",
+                    bytemuck::cast_slice(&cloud.positions[start..end]),
+                )?,
+                colours: vertex(
+                    "view colours",
+                    bytemuck::cast_slice(&cloud.colours[start..end]),
+                )?,
+                scalars: cloud
+                    .scalars
+                    .iter()
+                    .map(|s| vertex("view scalar", bytemuck::cast_slice(&s.values[start..end])))
+                    .collect::<Result<_, _>>()?,
+            });
+            start = end;
+        }
+        Ok(GpuLayer {
+            chunks,
+            origin: cloud.origin,
+            points: cloud.len(),
+        })
+    }
+
+    /// Draws `layers` into `target` (format [`Self::format`]) with depth buffer `depth`
+    /// ([`DEPTH_FORMAT`], same size), clearing both first.
+    pub fn render(
+        &self,
+        gpu: &Gpu,
+        target: &wgpu::TextureView,
+        depth: &wgpu::TextureView,
+        frame: &Frame,
+        layers: &[LayerDraw<'_>],
+    ) {
+        let device = &gpu.device;
+        let draws = layers.len().max(1) as u64;
+        let uniforms = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("points view"),
+            size: draws * UNIFORM_STRIDE,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut block = vec![0u8; (draws * UNIFORM_STRIDE) as usize];
+        for (k, d) in layers.iter().enumerate() {
+            let u = view_uniform(frame, d);
+            let at = k * UNIFORM_STRIDE as usize;
+            block[at..at + u.len()].copy_from_slice(&u);
+        }
+        gpu.queue.write_buffer(&uniforms, 0, &block);
+        let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("points view"),
+            layout: &self.layout,
+            entries: &[wgpu::BindGroupEntry {
+                binding: 0,
+                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                    buffer: &uniforms,
+                    offset: 0,
+                    size: wgpu::BufferSize::new(UNIFORM_BYTES as u64),
+                }),
+            }],
+        });
+        let mut encoder = gpu.encoder("points view");
+        {
+            let [r, g, b] = frame.background;
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("points view"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: target,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color { r, g, b, a: 1.0 }),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: depth,
+                    depth_ops: Some(wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(1.0),
+                        store: wgpu::StoreOp::Discard,
+                    }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            pass.set_pipeline(&self.pipeline);
+            for (k, d) in layers.iter().enumerate() {
+                pass.set_bind_group(0, &bind, &[(k as u64 * UNIFORM_STRIDE) as u32]);
+                let colour_scalar = match d.colouring {
+                    Colouring::Map { index, .. } => Some(index),
+                    _ => None,
+                };
+                for c in &d.layer.chunks {
+                    // A scalar the layer lacks is never read (mode and filter are off); any buffer of
+                    // 4 bytes per point stands in for it.
+                    let pick =
+                        |i: Option<usize>| i.and_then(|i| c.scalars.get(i)).unwrap_or(&c.colours);
+                    pass.set_vertex_buffer(0, c.positions.slice(..));
+                    pass.set_vertex_buffer(1, c.colours.slice(..));
+                    pass.set_vertex_buffer(2, pick(colour_scalar).slice(..));
+                    pass.set_vertex_buffer(3, pick(d.filter.map(|f| f.0)).slice(..));
+                    pass.draw(0..4, 0..c.points);
+                }
+            }
+        }
+        gpu.queue.submit([encoder.finish()]);
+    }
+}
+
+/// Bytes of `View` in `points.wgsl`: mat4 + 5 vec4.
+const UNIFORM_BYTES: usize = 64 + 5 * 16;
+
+fn view_uniform(frame: &Frame, d: &LayerDraw<'_>) -> [u8; UNIFORM_BYTES] {
+    let offset = (d.layer.origin - frame.reference).as_vec3();
+    let (w, h) = (frame.width.max(1) as f32, frame.height.max(1) as f32);
+    let (mode, solid, lo, hi) = match d.colouring {
+        Colouring::Rgb => (0u32, [0.0; 3], 0.0, 1.0),
+        Colouring::Map { lo, hi, .. } => (1, [0.0; 3], lo, hi),
+        Colouring::Solid(c) => (2, c, 0.0, 1.0),
+    };
+    let layer_has = |i: usize| d.layer.chunks.first().is_none_or(|c| i < c.scalars.len());
+    let mode =
+        if mode == 1 && !matches!(d.colouring, Colouring::Map { index, .. } if layer_has(index)) {
+            2
+        } else {
+            mode
+        };
+    let (filter_on, threshold) = match d.filter {
+        Some((i, t)) if layer_has(i) => (1u32, t),
+        _ => (0, 0.0),
+    };
+    let mut f = [0f32; 16 + 16];
+    f[..16].copy_from_slice(&frame.view_proj.to_cols_array());
+    f[16..20].copy_from_slice(&[offset.x, offset.y, offset.z, frame.point_size.max(0.5)]);
+    f[20..24].copy_from_slice(&[w, h, 1.0 / w, 1.0 / h]);
+    f[24..28].copy_from_slice(&[solid[0], solid[1], solid[2], 1.0]);
+    f[28..32].copy_from_slice(&[lo, hi, threshold, 0.0]);
+    let mut out = [0u8; UNIFORM_BYTES];
+    out[..128].copy_from_slice(bytemuck::cast_slice(&f));
+    let m = [mode, filter_on, frame.round as u32, 0];
+    out[128..].copy_from_slice(bytemuck::cast_slice(&m));
+    out
+}
+
+/// CPU reference of the vertex shader's placement: the pixel (x right, y down, centres at +0.5) where
+/// the point `p` (the layer's frame, relative to its origin `origin`) lands, and its depth, or `None`
+/// behind the camera.
+pub fn project(frame: &Frame, origin: DVec3, p: [f32; 3]) -> Option<([f32; 2], f32)> {
+    let rel = Vec3::from_array(p) + (origin - frame.reference).as_vec3();
+    let c = frame.view_proj * rel.extend(1.0);
+    if c.w <= 0.0 {
+        return None;
+    }
+    let ndc = c.truncate() / c.w;
+    let x = (ndc.x * 0.5 + 0.5) * frame.width as f32;
+    let y = (0.5 - ndc.y * 0.5) * frame.height as f32;
+    Some(([x, y], ndc.z))
+}

@@ -1,0 +1,327 @@
+//! The studio's reconstructions in the worker: opened PLY files as layers, their filter counts and the
+//! draw list of a view. Plain Rust (tested natively); `web.rs` feeds it bytes and a canvas.
+
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+use silvr_core::pointcloud::{read_ply_bytes, write_ply_bytes};
+use silvr_core::uncertainty::filter::default_threshold;
+use silvr_core::viewer::{Colouring, GpuLayer, LayerDraw, ViewCloud};
+
+use crate::view::{Colour, ViewState};
+
+/// Largest file the studio reads (a wasm32 heap is 4 GiB; the file, the parsed cloud and its view copy
+/// must fit together).
+pub const MAX_FILE_BYTES: u64 = 1536 << 20;
+/// Most layers open at once.
+pub const MAX_LAYERS: usize = crate::view::MAX_SOURCES;
+
+/// Solid layer colours (Okabe-Ito, colour-blind safe), cycled.
+pub const LAYER_COLOURS: [[f32; 3]; 8] = [
+    [0.90, 0.62, 0.0],
+    [0.34, 0.71, 0.91],
+    [0.0, 0.62, 0.45],
+    [0.94, 0.89, 0.26],
+    [0.0, 0.45, 0.70],
+    [0.84, 0.37, 0.0],
+    [0.80, 0.47, 0.65],
+    [0.95, 0.95, 0.95],
+];
+
+/// One scalar property of a layer, as the page shows it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ScalarInfo {
+    pub name: String,
+    /// Finite range; `None` when every value is NaN or infinite.
+    pub min: Option<f32>,
+    pub max: Option<f32>,
+    /// 2nd and 98th percentiles: the colour map's default range.
+    pub p02: Option<f32>,
+    pub p98: Option<f32>,
+}
+
+/// A layer, as the page shows it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LayerInfo {
+    pub index: u32,
+    pub name: String,
+    /// Where it came from: a URL, or `file:NAME` for a dropped file.
+    pub source: String,
+    /// Points drawn.
+    pub points: u64,
+    /// Points in the file.
+    pub total: u64,
+    /// Every `stride`-th point is drawn (1: all).
+    pub stride: u64,
+    pub min: [f64; 3],
+    pub max: [f64; 3],
+    pub has_rgb: bool,
+    pub scalars: Vec<ScalarInfo>,
+    pub gpu_bytes: u64,
+}
+
+/// A layer: the view cloud, and its GPU buffers once a device drew it.
+pub struct Layer {
+    pub info: LayerInfo,
+    pub cloud: ViewCloud,
+    pub gpu: Option<GpuLayer>,
+}
+
+/// Parses a PLY file into a layer (the core's reader: one reader for native and browser). Errors name
+/// the source and the problem.
+pub fn parse_layer(bytes: &[u8], name: &str, source: &str, index: u32) -> Result<Layer, String> {
+    let cloud = read_ply_bytes(bytes, name).map_err(|e| format!("{name}: {e}"))?;
+    if cloud.is_empty() {
+        return Err(format!("{name}: the file holds no points"));
+    }
+    let view = ViewCloud::from_cloud(&cloud, ViewCloud::MAX_POINTS);
+    drop(cloud);
+    if view.is_empty() {
+        return Err(format!("{name}: no point has finite coordinates"));
+    }
+    let scalars = view
+        .scalars
+        .iter()
+        .map(|s| ScalarInfo {
+            name: s.name.clone(),
+            min: s.quantile(0.0),
+            max: s.quantile(1.0),
+            p02: s.quantile(0.02),
+            p98: s.quantile(0.98),
+        })
+        .collect();
+    Ok(Layer {
+        info: LayerInfo {
+            index,
+            name: name.to_string(),
+            source: source.to_string(),
+            points: view.len() as u64,
+            total: view.total as u64,
+            stride: view.stride as u64,
+            min: view.min.to_array(),
+            max: view.max.to_array(),
+            has_rgb: view.has_rgb,
+            scalars,
+            gpu_bytes: 0,
+        },
+        cloud: view,
+        gpu: None,
+    })
+}
+
+/// The filter's outcome over the visible layers.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FilterCounts {
+    pub field: String,
+    /// The threshold in force (the view's, or the default rule's).
+    pub threshold: Option<f32>,
+    /// The default rule's threshold over the visible layers (Tukey's fence of their values together; for
+    /// one layer exactly the native `silvr uncertainty` threshold).
+    pub default_threshold: Option<f32>,
+    /// Kept / total per layer (`None` for a layer without the field).
+    pub per_layer: Vec<Option<(u64, u64)>>,
+    pub kept: u64,
+    pub total: u64,
+}
+
+/// The open layers.
+#[derive(Default)]
+pub struct Layers {
+    pub layers: Vec<Layer>,
+}
+
+impl Layers {
+    pub fn visible<'a>(&'a self, view: &'a ViewState) -> impl Iterator<Item = &'a Layer> + 'a {
+        self.layers
+            .iter()
+            .filter(move |l| !view.hidden.contains(&l.info.index))
+    }
+
+    /// The bounds of the visible layers (all layers when none is visible).
+    pub fn bounds(&self, view: &ViewState) -> Option<([f64; 3], [f64; 3])> {
+        let mut it: Vec<&Layer> = self.visible(view).collect();
+        if it.is_empty() {
+            it = self.layers.iter().collect();
+        }
+        let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+        for l in &it {
+            lo = lo.min(DVec3::from_array(l.info.min));
+            hi = hi.max(DVec3::from_array(l.info.max));
+        }
+        (!it.is_empty()).then(|| (lo.to_array(), hi.to_array()))
+    }
+
+    /// The default threshold of `field` over the visible layers.
+    pub fn default_threshold(&self, view: &ViewState, field: &str) -> Option<f32> {
+        let values: Vec<f32> = self
+            .visible(view)
+            .filter_map(|l| l.cloud.scalar(field))
+            .flat_map(|s| s.values.iter().copied())
+            .collect();
+        let t = default_threshold(&values);
+        t.is_finite().then_some(t)
+    }
+
+    /// The threshold the view applies: its own, or the default rule's.
+    pub fn threshold(&self, view: &ViewState) -> Option<f32> {
+        view.threshold
+            .or_else(|| self.default_threshold(view, &view.filter))
+    }
+
+    pub fn counts(&self, view: &ViewState) -> FilterCounts {
+        let threshold = self.threshold(view);
+        let mut per_layer = Vec::new();
+        let (mut kept, mut total) = (0, 0);
+        for l in &self.layers {
+            let hidden = view.hidden.contains(&l.info.index);
+            let c = match (l.cloud.scalar(&view.filter), threshold) {
+                (Some(s), Some(t)) => Some((s.kept(t) as u64, l.cloud.len() as u64)),
+                (Some(_), None) => Some((l.cloud.len() as u64, l.cloud.len() as u64)),
+                (None, _) => None,
+            };
+            if let (Some((k, n)), false) = (c, hidden) {
+                kept += k;
+                total += n;
+            }
+            per_layer.push(c);
+        }
+        FilterCounts {
+            field: view.filter.clone(),
+            threshold,
+            default_threshold: self.default_threshold(view, &view.filter),
+            per_layer,
+            kept,
+            total,
+        }
+    }
+
+    /// How each visible layer with GPU buffers is drawn in `view`.
+    pub fn draws<'a>(&'a self, view: &ViewState) -> Vec<LayerDraw<'a>> {
+        let threshold = self.threshold(view);
+        self.layers
+            .iter()
+            .filter(|l| !view.hidden.contains(&l.info.index))
+            .filter_map(|l| {
+                let layer = l.gpu.as_ref()?;
+                let solid = LAYER_COLOURS[l.info.index as usize % LAYER_COLOURS.len()];
+                let colouring = match &view.colour {
+                    Colour::Rgb => Colouring::Rgb,
+                    Colour::Layer => Colouring::Solid(solid),
+                    Colour::Field(f) => match self.colour_range(view, f) {
+                        Some((lo, hi)) => match l.cloud.scalars.iter().position(|s| &s.name == f) {
+                            Some(index) => Colouring::Map { index, lo, hi },
+                            None => Colouring::Solid([0.45, 0.45, 0.45]),
+                        },
+                        None => Colouring::Solid([0.45, 0.45, 0.45]),
+                    },
+                };
+                let filter = threshold.and_then(|t| {
+                    l.cloud
+                        .scalars
+                        .iter()
+                        .position(|s| s.name == view.filter)
+                        .map(|i| (i, t))
+                });
+                Some(LayerDraw {
+                    layer,
+                    colouring,
+                    filter,
+                })
+            })
+            .collect()
+    }
+
+    /// The colour map's range of `field`: the 2nd-98th percentile over the visible layers.
+    pub fn colour_range(&self, view: &ViewState, field: &str) -> Option<(f32, f32)> {
+        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        for l in self.visible(view) {
+            if let Some(s) = l.info.scalars.iter().find(|s| s.name == field) {
+                if let (Some(a), Some(b)) = (s.p02, s.p98) {
+                    lo = lo.min(a);
+                    hi = hi.max(b);
+                }
+            }
+        }
+        (lo <= hi).then_some((lo, hi))
+    }
+
+    /// The kept points of layer `index` as a PLY file (the native writer), with a file name.
+    pub fn filtered_ply(&self, view: &ViewState, index: u32) -> Result<(String, Vec<u8>), String> {
+        let l = self
+            .layers
+            .iter()
+            .find(|l| l.info.index == index)
+            .ok_or_else(|| format!("there is no layer {index}"))?;
+        let threshold = self
+            .threshold(view)
+            .ok_or_else(|| format!("{}: no finite {} to filter by", l.info.name, view.filter))?;
+        let cloud = l
+            .cloud
+            .filtered(&view.filter, threshold)
+            .ok_or_else(|| format!("{} has no property {}", l.info.name, view.filter))?;
+        let bytes = write_ply_bytes(&cloud).map_err(|e| format!("{}: {e}", l.info.name))?;
+        let stem = l.info.name.trim_end_matches(".ply");
+        Ok((format!("{stem}_filtered.ply"), bytes))
+    }
+}
+
+#[cfg(all(test, not(target_arch = "wasm32")))]
+mod tests {
+    use super::*;
+    use silvr_core::pointcloud::PointCloud;
+
+    fn ply(n: usize) -> Vec<u8> {
+        let mut c = PointCloud::new();
+        for i in 0..n {
+            c.push_colored(DVec3::new(i as f64, 0.0, 1.0), [1, 2, 3]);
+        }
+        let mut v: Vec<f32> = (0..n).map(|i| (i % 50) as f32 * 0.01 - 2.0).collect();
+        v[n - 1] = 5.0; // an outlier
+        v[0] = f32::NAN;
+        c.set_scalar("log_std_combined", v);
+        write_ply_bytes(&c).unwrap()
+    }
+
+    #[test]
+    fn default_threshold_and_counts_match_the_native_filter() {
+        let bytes = ply(200);
+        let mut layers = Layers::default();
+        layers
+            .layers
+            .push(parse_layer(&bytes, "points.ply", "file:points.ply", 0).unwrap());
+        let view = ViewState::default();
+        let c = layers.counts(&view);
+        let native = silvr_core::pointcloud::read_ply_bytes(&bytes, "p").unwrap();
+        let v = native.scalar("log_std_combined").unwrap();
+        let t = default_threshold(v);
+        assert_eq!(c.threshold, Some(t));
+        let kept = v.iter().filter(|&&x| x <= t).count() as u64;
+        assert_eq!(c.kept, kept);
+        assert_eq!(c.kept, 198, "the NaN and the outlier go");
+        assert_eq!(c.total, 200);
+        let (name, out) = layers.filtered_ply(&view, 0).unwrap();
+        assert_eq!(name, "points_filtered.ply");
+        assert_eq!(read_ply_bytes(&out, &name).unwrap().len() as u64, kept);
+        // Hiding the layer removes it from the counts.
+        let hidden = ViewState {
+            hidden: vec![0],
+            ..ViewState::default()
+        };
+        assert_eq!(layers.counts(&hidden).total, 0);
+    }
+
+    #[test]
+    fn bad_files_name_the_source_and_the_problem() {
+        let e = parse_layer(b"not a ply at all", "x.ply", "file:x.ply", 0)
+            .err()
+            .unwrap();
+        assert!(e.starts_with("x.ply"), "{e}");
+        let mut b = ply(100);
+        b.truncate(b.len() - 7);
+        let e = parse_layer(&b, "cut.ply", "", 0).err().unwrap();
+        assert!(e.contains("cut.ply"), "{e}");
+        // A header claiming 2^31 points in a tiny file errors before allocating.
+        let huge = b"ply\nformat binary_little_endian 1.0\nelement vertex 2147483647\nproperty float x\nproperty float y\nproperty float z\nend_header\n\0\0\0\0";
+        let e = parse_layer(huge, "huge.ply", "", 0).err().unwrap();
+        assert!(e.contains("huge.ply"), "{e}");
+    }
+}
