@@ -3,7 +3,8 @@
 #   1. npm ci --prefix web          (binaryen 132 for trunk's wasm-opt, playwright-core), when not up to date
 #   2. trunk build --release        (the studio: page + worker → dist/)
 #   3. wasm-bindgen-test            (the engine's GPU code in a dedicated Worker: worker/tests/browser_gpu.rs)
-#   4. node --test tests/browser/   (the studio page end to end: adapter, kernel check, drag and drop)
+#   4. node --test tests/browser/   (the studio page end to end: adapter, kernel check, drag and drop; the
+#                                    view in Chromium and Firefox on the ci demo's clouds, see viewer.mjs)
 # Needs trunk 0.21.14, wasm-bindgen-cli 0.2.130, chromium and chromedriver (scripts/setup.sh installs them;
 # this script installs nothing but web/node_modules). Exits non-zero on the first failure.
 set -euo pipefail
@@ -25,11 +26,13 @@ command -v wasm-bindgen-test-runner >/dev/null || die "wasm-bindgen-test-runner 
 wasm-bindgen --version | grep -q ' 0.2.130' || die "wasm-bindgen-cli must be 0.2.130 (the crate's pin), found: $(wasm-bindgen --version)"
 [ -x "$CHROMEDRIVER" ] || die "no chromedriver at $CHROMEDRIVER (apt-get install chromium-driver, or set CHROMEDRIVER)"
 [ -x /usr/bin/chromium ] || [ -n "${SILVR_CHROMIUM:-}" ] || die "no /usr/bin/chromium (apt-get install chromium, or set SILVR_CHROMIUM)"
+[ -x /usr/bin/firefox-esr ] || [ -n "${SILVR_FIREFOX:-}" ] || die "no /usr/bin/firefox-esr (scripts/setup.sh, or set SILVR_FIREFOX)"
 command -v node >/dev/null && command -v npm >/dev/null || die "node and npm are needed (Node 20+)"
 rustup target list --installed 2>/dev/null | grep -q wasm32-unknown-unknown || die "the wasm32 target is missing: rustup target add wasm32-unknown-unknown"
 
 # --- 1. web/node_modules ---
 if [ ! -x web/node_modules/.bin/wasm-opt ] || [ ! -d web/node_modules/playwright-core ] || \
+   [ ! -d web/node_modules/puppeteer-core ] || \
    [ web/package-lock.json -nt web/node_modules/.package-lock.json ]; then
   step "npm ci --prefix web"
   npm ci --prefix web --no-audit --no-fund --loglevel=error
@@ -57,8 +60,8 @@ CARGO_TARGET_WASM32_UNKNOWN_UNKNOWN_RUNNER=wasm-bindgen-test-runner \
 step "wasm-bindgen-test took $(elapsed "$t")"
 
 # --- 4. the studio page end to end ---
-step "node --test tests/browser/"
+step "node --test --test-concurrency=1 tests/browser/"
 t=$(date +%s)
-node --test tests/browser/
+node --test --test-concurrency=1 tests/browser/
 step "page tests took $(elapsed "$t")"
 step "all browser tests passed"

@@ -5,7 +5,8 @@
 #   scripts/setup.sh studio   + the studio build: clang (mcap's lz4/zstd for wasm32), the wasm32 target,
 #                             wasm-bindgen-cli pinned to the crate's version, trunk, web/'s npm packages
 #                             (binaryen 132, playwright-core)
-#   scripts/setup.sh [test]   + the browser tests: Chromium + ChromeDriver (the default: everything)
+#   scripts/setup.sh [test]   + the browser tests: Chromium + ChromeDriver, Firefox ESR ≥ 141 (bookworm-security
+#                             has 153; bookworm's 140 has no WebGPU) (the default: everything)
 # Debian bookworm (root): Mesa 25 comes from bookworm-backports (4-7x faster than bookworm's Mesa 22).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -22,7 +23,7 @@ SUDO=""
 
 pkgs=(vulkan-tools)
 [ "$purpose" = demo ] || pkgs+=(clang)
-[ "$purpose" = test ] && pkgs+=(chromium chromium-driver)
+[ "$purpose" = test ] && pkgs+=(chromium chromium-driver firefox-esr)
 need_apt=()
 for p in "${pkgs[@]}"; do
   dpkg -s "$p" >/dev/null 2>&1 || need_apt+=("$p")
@@ -75,7 +76,18 @@ if ! (command -v trunk >/dev/null && trunk --version | grep -q ' 0.21.14'); then
 fi
 
 if [ ! -x web/node_modules/.bin/wasm-opt ] || [ web/package-lock.json -nt web/node_modules/.package-lock.json ]; then
-  log "npm ci (web/: binaryen, playwright-core)"
+  log "npm ci (web/: binaryen, playwright-core, puppeteer-core)"
   npm ci --prefix web --no-audit --no-fund --loglevel=error
+fi
+if [ "$purpose" = test ]; then
+  # WebGPU in Firefox needs ESR 141 or later (Debian's security updates carry 153).
+  ffv=$(firefox-esr --version 2>/dev/null | grep -oE '[0-9]+' | head -1 || true)
+  if [ -z "$ffv" ] || [ "$ffv" -lt 141 ]; then
+    log "firefox-esr ${ffv:-missing} is older than 141, which has no WebGPU: upgrading from bookworm-security"
+    $SUDO apt-get update -qq
+    $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq firefox-esr >/dev/null
+    ffv=$(firefox-esr --version 2>/dev/null | grep -oE '[0-9]+' | head -1 || true)
+    [ -n "$ffv" ] && [ "$ffv" -ge 141 ] || { echo "firefox-esr ${ffv:-missing} < 141: WebGPU is not available in it (configure the bookworm-security source)" >&2; exit 1; }
+  fi
 fi
 log "ready ($purpose)"

@@ -10,6 +10,9 @@ cd "$(dirname "$0")/.."
 export SILVR_REQUIRE_GPU=1
 # Prefer Vulkan (lavapipe or a real GPU); wgpu's GL path compiles shaders for minutes on llvmpipe.
 export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
+# The ci demo test leaves its reconstructions here for the studio's browser tests.
+export SILVR_STUDIO_FIXTURES="${SILVR_STUDIO_FIXTURES:-$PWD/target/studio-fixtures}"
+rm -rf "$SILVR_STUDIO_FIXTURES"
 
 echo "== native tests (cargo test --workspace)"
 # One build of every target first (the CLI tests run target/debug/silvr): building `-p silvr` on its own

@@ -87,6 +87,18 @@ fn demo_ci_on_wgsl_reports_lidar_vision_and_silvr_with_silvr_beating_vision() {
     assert!(acc < 0.05, "lidar-only accuracy {acc} m");
     assert!(lidar["precision_10cm"].as_f64().unwrap() > 0.95);
     assert!(out.join("lidar_only.ply").is_file() && out.join("dataset/transforms.json").is_file());
+    // The studio's browser tests open this demo's reconstructions (scripts/test.sh sets the folder).
+    if let Some(dir) = std::env::var_os("SILVR_STUDIO_FIXTURES") {
+        let dir = std::path::PathBuf::from(dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        for (from, to) in [
+            ("silvr/points.ply", "points.ply"),
+            ("silvr/points_filtered.ply", "points_filtered.ply"),
+            ("lidar_only.ply", "lidar_only.ply"),
+        ] {
+            std::fs::copy(out.join(from), dir.join(to)).unwrap();
+        }
+    }
 
     // The trained fields: same geometry keys plus image quality, and SiLVR ahead of vision-only.
     let m = &report["methods"];

@@ -12,7 +12,8 @@ use web_sys::{
 };
 
 use crate::protocol::{
-    describe_size, explain_error, group_digits, Adapter, BrowserInfo, Check, FromWorker, ToWorker,
+    capitalize, describe_size, explain_error, group_digits, Adapter, BrowserInfo, Check,
+    FromWorker, ToWorker,
 };
 
 const TITLE: &str = "SiLVR Studio";
@@ -42,7 +43,10 @@ pub fn start() {
     set_state(&doc, "loading", "Starting the engine worker…");
     setup_drop_zone(&doc);
     match start_worker(&page) {
-        Ok(worker) => page.borrow_mut().worker = Some(worker),
+        Ok(worker) => {
+            crate::viewer::start(&worker);
+            page.borrow_mut().worker = Some(worker);
+        }
         Err(e) => fail(
             &doc,
             &format!("Could not start the engine worker: {}", js_error_text(&e)),
@@ -65,6 +69,25 @@ fn start_worker(page: &Shared) -> Result<Worker, JsValue> {
     {
         let page = page.clone();
         let on_message = Closure::<dyn FnMut(MessageEvent)>::new(move |ev: MessageEvent| {
+            let data = ev.data();
+            // A download carries its bytes as a Uint8Array, read as such (not through serde).
+            let kind = js_sys::Reflect::get(&data, &"type".into())
+                .ok()
+                .and_then(|t| t.as_string());
+            if kind.as_deref() == Some("download") {
+                let get =
+                    |k: &str| js_sys::Reflect::get(&data, &k.into()).unwrap_or(JsValue::UNDEFINED);
+                let name = get("name")
+                    .as_string()
+                    .unwrap_or_else(|| "filtered.ply".into());
+                match get("bytes").dyn_into::<js_sys::Uint8Array>() {
+                    Ok(bytes) => crate::viewer::on_download(&name, &bytes),
+                    Err(_) => {
+                        crate::viewer::on_view_error("the worker sent a download without bytes")
+                    }
+                }
+                return;
+            }
             match serde_wasm_bindgen::from_value::<FromWorker>(ev.data()) {
                 Ok(msg) => on_worker_message(&page, msg),
                 Err(e) => web_sys::console::warn_2(
@@ -96,6 +119,7 @@ fn start_worker(page: &Shared) -> Result<Worker, JsValue> {
 
 fn on_worker_message(page: &Shared, msg: FromWorker) {
     let doc = page.borrow().doc.clone();
+    crate::viewer::worker_listening();
     match msg {
         FromWorker::Adapter { adapter, browser } => {
             show_adapter(&doc, &adapter, browser.as_ref());
@@ -131,6 +155,35 @@ fn on_worker_message(page: &Shared, msg: FromWorker) {
             } else if body_state(&doc).as_deref() != Some("error") {
                 set_status(&doc, &status);
             }
+        }
+        FromWorker::Progress {
+            source,
+            stage,
+            loaded,
+            total,
+        } => crate::viewer::on_progress(&source, &stage, loaded, total),
+        FromWorker::Layer { layer } => crate::viewer::on_layer(layer),
+        FromWorker::LoadError { source, message } => {
+            crate::viewer::on_load_error(&source, &message)
+        }
+        FromWorker::Filter { counts } => crate::viewer::on_filter(counts),
+        FromWorker::Frame { n, ms, points } => crate::viewer::on_frame(n, ms, points),
+        FromWorker::Bench {
+            frames,
+            ms_per_frame,
+            points,
+        } => {
+            if let Some(c) = by_id(&doc, "view") {
+                c.set_attribute("data-bench-ms", &ms_per_frame.to_string())
+                    .ok();
+                c.set_attribute("data-bench-points", &points.to_string())
+                    .ok();
+                c.set_attribute("data-bench-frames", &frames.to_string())
+                    .ok();
+            }
+        }
+        FromWorker::Error { stage, message, .. } if stage == "view" => {
+            crate::viewer::on_view_error(&capitalize(&message))
         }
         FromWorker::Error {
             id,
@@ -356,7 +409,10 @@ fn setup_drop_zone(doc: &web_sys::Document) {
             ev.stop_propagation();
             zone2.class_list().remove_1("over").ok();
             match ev.data_transfer().and_then(|dt| dt.files()) {
-                Some(files) if files.length() > 0 => show_files(&doc, &files),
+                Some(files) if files.length() > 0 => {
+                    show_files(&doc, &files);
+                    open_files(&files);
+                }
                 _ => show_error(
                     &doc,
                     "That drop held no file: drop a file from your computer.",
@@ -373,10 +429,16 @@ fn setup_drop_zone(doc: &web_sys::Document) {
             if let Some(files) = input2.files() {
                 if files.length() > 0 {
                     show_files(&doc, &files);
+                    open_files(&files);
                 }
             }
         });
     }
+}
+
+fn open_files(files: &FileList) {
+    let files: Vec<File> = (0..files.length()).filter_map(|i| files.get(i)).collect();
+    crate::viewer::open_files(&files);
 }
 
 fn show_files(doc: &web_sys::Document, files: &FileList) {
@@ -412,13 +474,13 @@ fn show_files(doc: &web_sys::Document, files: &FileList) {
 
 // ----- small DOM helpers -----
 
-fn document() -> web_sys::Document {
+pub(crate) fn document() -> web_sys::Document {
     web_sys::window()
         .and_then(|w| w.document())
         .expect("the studio runs in a page with a document")
 }
 
-fn by_id(doc: &web_sys::Document, id: &str) -> Option<Element> {
+pub(crate) fn by_id(doc: &web_sys::Document, id: &str) -> Option<Element> {
     doc.get_element_by_id(id)
 }
 
@@ -426,7 +488,7 @@ fn clear(el: &Element) {
     el.set_text_content(None);
 }
 
-fn text_el(doc: &web_sys::Document, tag: &str, class: &str, text: &str) -> Element {
+pub(crate) fn text_el(doc: &web_sys::Document, tag: &str, class: &str, text: &str) -> Element {
     let e = doc.create_element(tag).unwrap();
     if !class.is_empty() {
         e.set_class_name(class);
@@ -454,7 +516,7 @@ fn table(doc: &web_sys::Document, rows: &[(&str, String)]) -> Element {
     dl
 }
 
-fn listen<E: JsCast + 'static>(
+pub(crate) fn listen<E: JsCast + 'static>(
     target: &web_sys::EventTarget,
     name: &str,
     mut f: impl FnMut(E) + 'static,

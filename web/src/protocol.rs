@@ -31,6 +31,33 @@ pub enum FromWorker {
         passed: bool,
         check: Check,
     },
+    Progress {
+        source: String,
+        stage: String,
+        loaded: f64,
+        #[serde(default)]
+        total: Option<f64>,
+    },
+    Layer {
+        layer: silvr_worker::studio::LayerInfo,
+    },
+    LoadError {
+        source: String,
+        message: String,
+    },
+    Filter {
+        counts: silvr_worker::studio::FilterCounts,
+    },
+    Frame {
+        n: u32,
+        ms: f64,
+        points: u64,
+    },
+    Bench {
+        frames: u32,
+        ms_per_frame: f64,
+        points: u64,
+    },
     Error {
         id: Option<u32>,
         stage: String,

@@ -163,7 +163,7 @@ pub enum ToPage {
 }
 
 /// Messages from the page to the worker.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "kebab-case")]
 pub enum FromPage {
     /// Runs the projection self-check (defaults: [`STARTUP_POINTS`] points, seed [`STARTUP_SEED`]).

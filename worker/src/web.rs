@@ -10,16 +10,38 @@ use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::spawn_local;
 use web_sys::{DedicatedWorkerGlobalScope, MessageEvent};
 
+use crate::studio::{parse_layer, Layers, MAX_FILE_BYTES, MAX_LAYERS};
+use crate::view::{is_fetchable, Camera, ViewState};
 use crate::{
-    handle, name_adapter, run_check, BrowserAdapterInfo, FromPage, Stage, ToPage, STARTUP_POINTS,
+    name_adapter, run_check, BrowserAdapterInfo, FromPage, Stage, ToPage, STARTUP_POINTS,
     STARTUP_SEED,
 };
+use silvr_core::gpu::wgpu;
+use silvr_core::viewer::{Frame, PointRenderer, DEPTH_FORMAT};
 
-/// The device, once startup has settled. Messages that arrive before are queued.
+/// The device, once startup has settled. Messages that arrive before are queued as they came.
 enum GpuState {
-    Starting(Vec<FromPage>),
-    Ready(Gpu),
+    Starting(Vec<JsValue>),
+    Ready(Rc<RefCell<Studio>>),
     Failed(String),
+}
+
+/// The view's state in the worker: the device, the layers, the canvas it draws into.
+struct Studio {
+    gpu: Gpu,
+    layers: Layers,
+    view: ViewState,
+    target: Option<Target>,
+    frames: u32,
+    last_counts: Option<crate::studio::FilterCounts>,
+}
+
+/// The canvas surface and what drawing into it needs.
+struct Target {
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    renderer: PointRenderer,
+    depth: wgpu::TextureView,
 }
 
 type Shared = Rc<RefCell<GpuState>>;
@@ -62,8 +84,13 @@ async fn startup(state: Shared) {
             let why = format!("WebGPU is not available: {message} ({detail})");
             let old = std::mem::replace(&mut *state.borrow_mut(), GpuState::Failed(why.clone()));
             if let GpuState::Starting(queued) = old {
-                for msg in queued {
-                    post(&refuse(&msg, &why));
+                for data in queued {
+                    post(&ToPage::Error {
+                        id: message_id(&data),
+                        stage: Stage::Webgpu,
+                        message: why.clone(),
+                        detail: None,
+                    });
                 }
             }
             return;
@@ -77,16 +104,82 @@ async fn startup(state: Shared) {
     log::info!("silvr worker: {adapter}");
     post(&ToPage::Adapter { adapter, browser });
     post(&run_check(&gpu, None, STARTUP_POINTS, STARTUP_SEED).await);
-    let old = std::mem::replace(&mut *state.borrow_mut(), GpuState::Ready(gpu.clone()));
+    let studio = Rc::new(RefCell::new(Studio {
+        gpu,
+        layers: Layers::default(),
+        view: ViewState::default(),
+        target: None,
+        frames: 0,
+        last_counts: None,
+    }));
+    let old = std::mem::replace(&mut *state.borrow_mut(), GpuState::Ready(studio.clone()));
     if let GpuState::Starting(queued) = old {
-        for msg in queued {
-            let gpu = gpu.clone();
-            spawn_local(async move { post(&handle(&gpu, msg).await) });
+        for data in queued {
+            dispatch(&studio, data);
         }
     }
 }
 
 fn receive(state: &Shared, data: JsValue) {
+    let mut st = state.borrow_mut();
+    match &mut *st {
+        GpuState::Starting(queue) => queue.push(data),
+        GpuState::Failed(why) => post(&ToPage::Error {
+            id: message_id(&data),
+            stage: Stage::Webgpu,
+            message: why.clone(),
+            detail: None,
+        }),
+        GpuState::Ready(studio) => {
+            let studio = studio.clone();
+            drop(st);
+            dispatch(&studio, data);
+        }
+    }
+}
+
+fn message_id(data: &JsValue) -> Option<u32> {
+    js_sys::Reflect::get(data, &"id".into())
+        .ok()
+        .and_then(|v| v.as_f64())
+        .map(|v| v as u32)
+}
+
+fn get(obj: &JsValue, key: &str) -> JsValue {
+    js_sys::Reflect::get(obj, &JsValue::from_str(key)).unwrap_or(JsValue::UNDEFINED)
+}
+
+/// Handles one message once the device is ready. Messages that carry JS objects (a canvas, a file)
+/// are read field by field; the rest through serde.
+fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
+    match get(&data, "type").as_string().as_deref() {
+        Some("canvas") => {
+            let Ok(canvas) = get(&data, "canvas").dyn_into::<web_sys::OffscreenCanvas>() else {
+                post(&view_error(
+                    None,
+                    "the canvas message carries no OffscreenCanvas",
+                ));
+                return;
+            };
+            let size = |k| get(&data, k).as_f64().unwrap_or(1.0).clamp(1.0, 16384.0) as u32;
+            let (w, h) = (size("width"), size("height"));
+            spawn_local(attach(studio.clone(), canvas, w, h));
+            return;
+        }
+        Some("open-file") => {
+            let id = message_id(&data).unwrap_or(0);
+            match get(&data, "file").dyn_into::<web_sys::File>() {
+                Ok(file) => spawn_local(open_file(studio.clone(), id, file)),
+                Err(_) => post(&ToPage::LoadError {
+                    id,
+                    source: "a dropped file".into(),
+                    message: "the message carries no File".into(),
+                }),
+            }
+            return;
+        }
+        _ => {}
+    }
     let msg: FromPage = match serde_wasm_bindgen::from_value(data.clone()) {
         Ok(m) => m,
         Err(e) => {
@@ -106,25 +199,470 @@ fn receive(state: &Shared, data: JsValue) {
             return;
         }
     };
-    let mut st = state.borrow_mut();
-    match &mut *st {
-        GpuState::Starting(queue) => queue.push(msg),
-        GpuState::Failed(why) => post(&refuse(&msg, why)),
-        GpuState::Ready(gpu) => {
-            let gpu = gpu.clone();
-            spawn_local(async move { post(&handle(&gpu, msg).await) });
+    match msg {
+        FromPage::RunCheck { id, n, seed } => {
+            let gpu = studio.borrow().gpu.clone();
+            spawn_local(async move {
+                post(
+                    &run_check(
+                        &gpu,
+                        id,
+                        n.unwrap_or(STARTUP_POINTS),
+                        seed.unwrap_or(STARTUP_SEED),
+                    )
+                    .await,
+                )
+            });
+        }
+        FromPage::Resize { width, height } => {
+            resize(studio, width, height);
+            draw(studio);
+        }
+        FromPage::View { view } => {
+            studio.borrow_mut().view = view;
+            draw(studio);
+            report_counts(studio);
+        }
+        FromPage::OpenUrl { id, url } => spawn_local(open_url(studio.clone(), id, url)),
+        FromPage::Download { id, layer, view } => {
+            let out = studio.borrow().layers.filtered_ply(&view, layer);
+            match out {
+                Ok((name, bytes)) => post_bytes(id, &name, &bytes),
+                Err(e) => post(&view_error(Some(id), &e)),
+            }
+        }
+        FromPage::Bench { id, frames } => spawn_local(bench(studio.clone(), id, frames)),
+    }
+}
+
+fn view_error(id: Option<u32>, message: &str) -> ToPage {
+    ToPage::Error {
+        id,
+        stage: Stage::View,
+        message: message.to_string(),
+        detail: None,
+    }
+}
+
+/// Makes the canvas the view's target: a surface from the engine's own instance, on its device.
+async fn attach(studio: Rc<RefCell<Studio>>, canvas: web_sys::OffscreenCanvas, w: u32, h: u32) {
+    let gpu = studio.borrow().gpu.clone();
+    let surface = match gpu
+        .instance
+        .create_surface(wgpu::SurfaceTarget::OffscreenCanvas(canvas))
+    {
+        Ok(s) => s,
+        Err(e) => {
+            post(&view_error(
+                None,
+                &format!("the canvas cannot show WebGPU: {e}"),
+            ));
+            return;
+        }
+    };
+    let caps = surface.get_capabilities(&gpu.adapter);
+    // Colours are written as encoded (sRGB values in a non-sRGB format), as the canvas shows them.
+    let format = caps
+        .formats
+        .iter()
+        .copied()
+        .find(|f| !f.is_srgb())
+        .or_else(|| caps.formats.first().copied());
+    let Some(format) = format else {
+        post(&view_error(None, "the canvas offers no texture format"));
+        return;
+    };
+    let renderer = match PointRenderer::new(&gpu, format).await {
+        Ok(r) => r,
+        Err(e) => {
+            post(&view_error(
+                None,
+                &format!("the point view cannot be built: {e}"),
+            ));
+            return;
+        }
+    };
+    let Some(mut config) = surface.get_default_config(&gpu.adapter, w, h) else {
+        post(&view_error(
+            None,
+            "the canvas cannot be configured for this device",
+        ));
+        return;
+    };
+    config.format = format;
+    config.usage = wgpu::TextureUsages::RENDER_ATTACHMENT;
+    config.view_formats = vec![];
+    if caps.alpha_modes.contains(&wgpu::CompositeAlphaMode::Opaque) {
+        config.alpha_mode = wgpu::CompositeAlphaMode::Opaque;
+    }
+    surface.configure(&gpu.device, &config);
+    let depth = depth_view(&gpu, w, h);
+    studio.borrow_mut().target = Some(Target {
+        surface,
+        config,
+        renderer,
+        depth,
+    });
+    // Layers opened before the canvas came get their buffers now.
+    upload_pending(&studio);
+    draw(&studio);
+}
+
+fn depth_view(gpu: &Gpu, w: u32, h: u32) -> wgpu::TextureView {
+    gpu.device
+        .create_texture(&wgpu::TextureDescriptor {
+            label: Some("view depth"),
+            size: wgpu::Extent3d {
+                width: w.max(1),
+                height: h.max(1),
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: DEPTH_FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            view_formats: &[],
+        })
+        .create_view(&Default::default())
+}
+
+fn resize(studio: &Rc<RefCell<Studio>>, width: u32, height: u32) {
+    let mut s = studio.borrow_mut();
+    let gpu = s.gpu.clone();
+    let max = gpu.device.limits().max_texture_dimension_2d;
+    let (w, h) = (width.clamp(1, max), height.clamp(1, max));
+    if let Some(t) = s.target.as_mut() {
+        if (t.config.width, t.config.height) != (w, h) {
+            t.config.width = w;
+            t.config.height = h;
+            t.surface.configure(&gpu.device, &t.config);
+            t.depth = depth_view(&gpu, w, h);
         }
     }
 }
 
-fn refuse(msg: &FromPage, why: &str) -> ToPage {
-    let FromPage::RunCheck { id, .. } = msg;
-    ToPage::Error {
-        id: *id,
-        stage: Stage::Webgpu,
-        message: why.to_string(),
-        detail: None,
+/// Uploads the layers that have no GPU buffers yet (needs the renderer), reporting failures.
+fn upload_pending(studio: &Rc<RefCell<Studio>>) {
+    let mut s = studio.borrow_mut();
+    let Studio {
+        gpu,
+        layers,
+        target,
+        ..
+    } = &mut *s;
+    let Some(t) = target.as_ref() else { return };
+    for l in layers.layers.iter_mut().filter(|l| l.gpu.is_none()) {
+        match t.renderer.upload(gpu, &l.cloud) {
+            Ok(g) => {
+                l.info.gpu_bytes = g.bytes();
+                l.gpu = Some(g);
+            }
+            Err(e) => post(&view_error(
+                None,
+                &format!("{}: cannot be put on the GPU: {e}", l.info.name),
+            )),
+        }
     }
+}
+
+/// Draws the view into the canvas and reports the frame when the GPU has finished it.
+fn draw(studio: &Rc<RefCell<Studio>>) {
+    let mut s = studio.borrow_mut();
+    let Some(t) = s.target.as_ref() else { return };
+    let texture = match t.surface.get_current_texture() {
+        wgpu::CurrentSurfaceTexture::Success(f) | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
+        other => {
+            log::warn!("no canvas texture this frame: {other:?}");
+            return;
+        }
+    };
+    let (w, h) = (t.config.width, t.config.height);
+    let Some((lo, hi)) = s.layers.bounds(&s.view) else {
+        // Nothing open: clear to the background.
+        let frame = frame_for(&s.view, Camera::fit([0.0; 3], [1.0; 3]), 1.0, (w, h));
+        let view = texture.texture.create_view(&Default::default());
+        t.renderer.render(&s.gpu, &view, &t.depth, &frame, &[]);
+        s.gpu.queue.present(texture);
+        return;
+    };
+    let radius = 0.5
+        * (glam::DVec3::from_array(hi) - glam::DVec3::from_array(lo))
+            .length()
+            .max(1e-3);
+    let camera = s.view.camera.unwrap_or_else(|| Camera::fit(lo, hi));
+    let frame = frame_for(&s.view, camera, radius, (w, h));
+    let draws = s.layers.draws(&s.view);
+    let points: u64 = draws.iter().map(|d| d.layer.points() as u64).sum();
+    let view = texture.texture.create_view(&Default::default());
+    let start = js_sys::Date::now();
+    t.renderer.render(&s.gpu, &view, &t.depth, &frame, &draws);
+    drop(draws);
+    s.gpu.queue.present(texture);
+    s.frames += 1;
+    let n = s.frames;
+    s.gpu.queue.on_submitted_work_done(move || {
+        post(&ToPage::Frame {
+            n,
+            ms: js_sys::Date::now() - start,
+            points,
+        })
+    });
+}
+
+fn frame_for(view: &ViewState, camera: Camera, radius: f64, (w, h): (u32, u32)) -> Frame {
+    let reference = glam::DVec3::from_array(camera.target);
+    Frame {
+        reference,
+        view_proj: camera.view_proj((w, h), radius, reference),
+        width: w,
+        height: h,
+        point_size: view.point_size,
+        round: view.point_size >= 3.0,
+        background: if view.dark {
+            [0.06, 0.07, 0.09]
+        } else {
+            [0.97, 0.97, 0.96]
+        },
+    }
+}
+
+/// Sends the filter's counts when they changed.
+fn report_counts(studio: &Rc<RefCell<Studio>>) {
+    let mut s = studio.borrow_mut();
+    let counts = s.layers.counts(&s.view);
+    if s.last_counts.as_ref() != Some(&counts) {
+        s.last_counts = Some(counts.clone());
+        post(&ToPage::Filter { counts });
+    }
+}
+
+/// Reads a stream to its end into memory, reporting progress, refusing more than [`MAX_FILE_BYTES`].
+async fn read_stream(
+    stream: web_sys::ReadableStream,
+    total: Option<f64>,
+    id: u32,
+    source: &str,
+) -> Result<Vec<u8>, String> {
+    let reader: web_sys::ReadableStreamDefaultReader = stream.get_reader().unchecked_into();
+    let cap = total.unwrap_or(0.0).clamp(0.0, MAX_FILE_BYTES as f64) as usize;
+    let mut out = Vec::with_capacity(cap);
+    let mut reported = 0usize;
+    loop {
+        let r = wasm_bindgen_futures::JsFuture::from(reader.read())
+            .await
+            .map_err(|e| format!("the transfer broke off: {}", js_text(&e)))?;
+        if get(&r, "done").as_bool().unwrap_or(true) {
+            break;
+        }
+        let chunk: js_sys::Uint8Array = get(&r, "value")
+            .dyn_into()
+            .map_err(|_| "the stream gave something other than bytes".to_string())?;
+        let n = chunk.length() as usize;
+        if (out.len() + n) as u64 > MAX_FILE_BYTES {
+            let _ = reader.cancel();
+            return Err(format!(
+                "it is larger than the {} MiB the studio opens",
+                MAX_FILE_BYTES >> 20
+            ));
+        }
+        let at = out.len();
+        out.resize(at + n, 0);
+        chunk.copy_to(&mut out[at..]);
+        if out.len() - reported >= 4 << 20 {
+            reported = out.len();
+            post(&ToPage::Progress {
+                id,
+                source: source.to_string(),
+                stage: "download".into(),
+                loaded: out.len() as f64,
+                total,
+            });
+        }
+    }
+    Ok(out)
+}
+
+fn js_text(e: &JsValue) -> String {
+    e.as_string()
+        .or_else(|| {
+            e.dyn_ref::<js_sys::Error>()
+                .map(|e| String::from(e.message()))
+        })
+        .unwrap_or_else(|| format!("{e:?}"))
+}
+
+async fn open_url(studio: Rc<RefCell<Studio>>, id: u32, url: String) {
+    let fail = |message: String| {
+        post(&ToPage::LoadError {
+            id,
+            source: url.clone(),
+            message,
+        })
+    };
+    if !is_fetchable(&url) {
+        return fail("only http: and https: URLs are opened".into());
+    }
+    let name = url
+        .split(['?', '#'])
+        .next()
+        .and_then(|p| p.rsplit('/').next())
+        .filter(|n| !n.is_empty())
+        .unwrap_or("points.ply")
+        .to_string();
+    let scope: web_sys::WorkerGlobalScope = js_sys::global().unchecked_into();
+    let response = match wasm_bindgen_futures::JsFuture::from(scope.fetch_with_str(&url)).await {
+        Ok(r) => r.unchecked_into::<web_sys::Response>(),
+        Err(e) => {
+            return fail(format!(
+                "could not be fetched: the server is unreachable or refused the studio's origin (CORS) ({})",
+                js_text(&e)
+            ))
+        }
+    };
+    if !response.ok() {
+        return fail(format!(
+            "the server answered HTTP {} {}",
+            response.status(),
+            response.status_text()
+        ));
+    }
+    let total = response
+        .headers()
+        .get("content-length")
+        .ok()
+        .flatten()
+        .and_then(|v| v.trim().parse::<f64>().ok());
+    if total.is_some_and(|t| t > MAX_FILE_BYTES as f64) {
+        return fail(format!(
+            "it is {:.0} MiB, more than the {} MiB the studio opens",
+            total.unwrap_or(0.0) / 1048576.0,
+            MAX_FILE_BYTES >> 20
+        ));
+    }
+    let Some(body) = response.body() else {
+        return fail("the response has no body".into());
+    };
+    match read_stream(body, total, id, &url).await {
+        Ok(bytes) => add_layer(&studio, id, &bytes, &name, &url),
+        Err(e) => fail(e),
+    }
+}
+
+async fn open_file(studio: Rc<RefCell<Studio>>, id: u32, file: web_sys::File) {
+    let name = file.name();
+    let source = format!("file:{name}");
+    let size = file.size();
+    if size > MAX_FILE_BYTES as f64 {
+        return post(&ToPage::LoadError {
+            id,
+            source,
+            message: format!(
+                "it is {:.0} MiB, more than the {} MiB the studio opens",
+                size / 1048576.0,
+                MAX_FILE_BYTES >> 20
+            ),
+        });
+    }
+    match read_stream(file.stream(), Some(size), id, &source).await {
+        Ok(bytes) => add_layer(&studio, id, &bytes, &name, &source),
+        Err(message) => post(&ToPage::LoadError {
+            id,
+            source,
+            message,
+        }),
+    }
+}
+
+fn add_layer(studio: &Rc<RefCell<Studio>>, id: u32, bytes: &[u8], name: &str, source: &str) {
+    {
+        let s = studio.borrow();
+        if s.layers.layers.len() >= MAX_LAYERS {
+            return post(&ToPage::LoadError {
+                id,
+                source: source.to_string(),
+                message: format!("the studio holds at most {MAX_LAYERS} layers; close one first"),
+            });
+        }
+    }
+    post(&ToPage::Progress {
+        id,
+        source: source.to_string(),
+        stage: "parse".into(),
+        loaded: bytes.len() as f64,
+        total: Some(bytes.len() as f64),
+    });
+    // The request id is the layer's number: the page numbers a link's sources by their order, so a
+    // link's `hide=` means the same layers whichever file arrives first.
+    let index = id;
+    match parse_layer(bytes, name, source, index) {
+        Ok(layer) => {
+            {
+                let mut s = studio.borrow_mut();
+                s.layers.layers.retain(|l| l.info.index != index);
+                s.layers.layers.push(layer);
+                s.layers.layers.sort_by_key(|l| l.info.index);
+            }
+            upload_pending(studio);
+            let info = studio.borrow().layers.layers.last().map(|l| l.info.clone());
+            if let Some(layer) = info {
+                post(&ToPage::Layer { id, layer });
+            }
+            draw(studio);
+            report_counts(studio);
+        }
+        Err(message) => post(&ToPage::LoadError {
+            id,
+            source: source.to_string(),
+            message,
+        }),
+    }
+}
+
+/// Posts a download's bytes, transferring the buffer instead of copying it.
+fn post_bytes(id: u32, name: &str, bytes: &[u8]) {
+    let array = js_sys::Uint8Array::new_with_length(bytes.len() as u32);
+    array.copy_from(bytes);
+    let msg = js_sys::Object::new();
+    let set = |k: &str, v: &JsValue| {
+        js_sys::Reflect::set(&msg, &JsValue::from_str(k), v).ok();
+    };
+    set("type", &"download".into());
+    set("id", &JsValue::from(id));
+    set("name", &name.into());
+    set("bytes", &array);
+    let transfer = js_sys::Array::of1(&array.buffer());
+    if let Err(e) = scope().post_message_with_transfer(&msg, &transfer) {
+        web_sys::console::error_2(&"silvr worker: postMessage failed".into(), &e);
+    }
+}
+
+/// Draws `frames` frames, each after the previous one finished on the GPU, and reports ms per frame.
+async fn bench(studio: Rc<RefCell<Studio>>, id: u32, frames: u32) {
+    let frames = frames.clamp(1, 1000);
+    let start = js_sys::Date::now();
+    for _ in 0..frames {
+        draw(&studio);
+        let gpu = studio.borrow().gpu.clone();
+        let (tx, rx) = futures_channel::oneshot::channel();
+        gpu.queue.on_submitted_work_done(move || {
+            let _ = tx.send(());
+        });
+        let _ = rx.await;
+    }
+    let points = studio
+        .borrow()
+        .layers
+        .layers
+        .iter()
+        .map(|l| l.info.points)
+        .sum();
+    post(&ToPage::Bench {
+        id,
+        frames,
+        ms_per_frame: (js_sys::Date::now() - start) / frames as f64,
+        points,
+    });
 }
 
 /// Asks `navigator.gpu` directly for the adapter's `GPUAdapterInfo` (wgpu does not pass vendor and

@@ -120,6 +120,9 @@ impl fmt::Display for AdapterReport {
 /// A device, its queue, and the pipelines built on it so far.
 #[derive(Clone)]
 pub struct Gpu {
+    /// The instance and adapter the device came from: a canvas surface must be made by the same ones.
+    pub instance: wgpu::Instance,
+    pub adapter: wgpu::Adapter,
     pub device: wgpu::Device,
     pub queue: wgpu::Queue,
     report: Arc<AdapterReport>,
@@ -216,6 +219,8 @@ impl Gpu {
             (true, false) => None,
         };
         Ok(Self {
+            instance,
+            adapter,
             device,
             queue,
             report: Arc::new(report),

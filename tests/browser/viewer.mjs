@@ -1,0 +1,318 @@
+// The studio's view, end to end, written once for both browsers: `viewerSuite(driver)` registers the
+// tests with node:test; `viewer.chromium.test.mjs` (playwright-core, SwiftShader WebGPU) and
+// `viewer.firefox.test.mjs` (puppeteer-core over WebDriver BiDi, lavapipe WebGPU) supply the driver.
+//
+// Fixtures: the ci demo's reconstructions, copied by the native end-to-end test (tests/tests/cli.rs) into
+// $SILVR_STUDIO_FIXTURES (scripts/test.sh: target/studio-fixtures): points.ply (with log_std_*),
+// points_filtered.ply (the native default filter), lidar_only.ply.
+
+import { after, before, describe, test } from 'node:test';
+import assert from 'node:assert/strict';
+import { createServer } from 'node:http';
+import { existsSync, readFileSync } from 'node:fs';
+import { spawn } from 'node:child_process';
+import { extname, join, normalize, resolve, sep } from 'node:path';
+import { fileURLToPath } from 'node:url';
+
+export const ROOT = resolve(fileURLToPath(new URL('../..', import.meta.url)));
+const DIST = join(ROOT, 'dist');
+const FIXTURES = process.env.SILVR_STUDIO_FIXTURES || join(ROOT, 'target', 'studio-fixtures');
+const STARTUP_TIMEOUT_MS = 120_000;
+const STEP_TIMEOUT_MS = 90_000;
+
+const MIME = {
+  '.html': 'text/html; charset=utf-8',
+  '.js': 'text/javascript; charset=utf-8',
+  '.wasm': 'application/wasm',
+  '.css': 'text/css; charset=utf-8',
+};
+
+/** The vertex count a PLY header declares. */
+export function plyVertexCount(path) {
+  const head = readFileSync(path).subarray(0, 4096).toString('latin1');
+  const m = head.match(/element vertex (\d+)/);
+  if (!m) throw new Error(`${path}: no vertex element`);
+  return Number(m[1]);
+}
+
+/** dist/ at /, the fixtures at /data/, plus the broken files the hostile-link test asks for. */
+async function serve() {
+  const points = readFileSync(join(FIXTURES, 'points.ply'));
+  const extra = {
+    '/data/truncated.ply': points.subarray(0, Math.floor(points.length * 0.6)),
+    '/data/huge.ply': Buffer.from(
+      'ply\nformat binary_little_endian 1.0\nelement vertex 2000000000\nproperty float x\n' +
+        'property float y\nproperty float z\nend_header\n' + '\0'.repeat(64),
+      'latin1',
+    ),
+    '/data/not.ply': Buffer.from('<html><body>this is not a point cloud</body></html>'),
+  };
+  const server = createServer((req, res) => {
+    const url = new URL(req.url, 'http://localhost');
+    const path = decodeURIComponent(url.pathname);
+    let body;
+    if (extra[path]) {
+      body = extra[path];
+    } else {
+      const [root, rel] = path.startsWith('/data/') ? [FIXTURES, path.slice(6)] : [DIST, path === '/' ? 'index.html' : path];
+      const file = normalize(join(root, rel));
+      if (file.startsWith(root + sep) && existsSync(file)) body = readFileSync(file);
+    }
+    if (!body) {
+      res.writeHead(404, { 'content-type': 'text/plain' }).end('not found');
+      return;
+    }
+    res.writeHead(200, {
+      'content-type': MIME[extname(path)] || 'application/octet-stream',
+      'content-length': body.length,
+      'cache-control': 'no-store',
+    });
+    res.end(body);
+  });
+  await new Promise((ok, fail) => {
+    server.once('error', fail);
+    server.listen(0, '127.0.0.1', ok);
+  });
+  const base = `http://127.0.0.1:${server.address().port}`;
+  return {
+    base,
+    close: () => {
+      server.closeAllConnections();
+      return new Promise((ok) => server.close(() => ok()));
+    },
+  };
+}
+
+const enc = encodeURIComponent;
+
+/**
+ * `driver`: { name, launch() → browser handle, newPage(browser) → { page, log }, close(browser),
+ * waitFor(page, fn, arg, timeoutMs), evaluate(page, fn, arg), screenshot(page, selector) → Buffer }.
+ */
+export function viewerSuite(driver) {
+  const ready = existsSync(join(DIST, 'index.html')) && existsSync(join(FIXTURES, 'points.ply'));
+  describe(`studio view in ${driver.name}`, { timeout: 12 * STEP_TIMEOUT_MS }, () => {
+    let server, browser;
+    before(async () => {
+      if (!ready) {
+        throw new Error(
+          `needs dist/ (trunk build) and ${FIXTURES}/points.ply (the ci demo's, copied by the native ` +
+            'test `demo_ci_on_wgsl…` when SILVR_STUDIO_FIXTURES is set): run scripts/test.sh',
+        );
+      }
+      server = await serve();
+      browser = await driver.launch();
+    });
+    after(async () => {
+      await driver.close(browser);
+      await server?.close();
+    });
+
+    const open = async (path) => {
+      const { page, log } = await driver.newPage(browser);
+      await driver.goto(page, server.base + path);
+      await driver.waitFor(page, () => document.body.dataset.state !== 'loading', null, STARTUP_TIMEOUT_MS);
+      const state = await driver.evaluate(page, () => document.body.dataset.state);
+      assert.equal(state, 'ready', `studio state ${state}\n${log.join('\n')}`);
+      return { page, log };
+    };
+    const layersLoaded = (page, n) =>
+      driver.waitFor(page, (n) => document.querySelectorAll('#layers li').length >= n, n, STEP_TIMEOUT_MS);
+    const kept = (page) =>
+      driver.evaluate(page, () => {
+        const k = document.querySelector('#kept');
+        return { kept: Number(k.dataset.kept), total: Number(k.dataset.total), threshold: k.dataset.threshold };
+      });
+    /** Waits until the worker has drawn a frame after now. */
+    const nextFrame = async (page) => {
+      const n = await driver.evaluate(page, () => Number(document.querySelector('#view').dataset.frames || 0));
+      await driver.waitFor(page, (n) => Number(document.querySelector('#view').dataset.frames || 0) > n, n, STEP_TIMEOUT_MS);
+    };
+    const setValue = (page, sel, value) =>
+      driver.evaluate(page, ([sel, value]) => {
+        const el = document.querySelector(sel);
+        el.value = value;
+        el.dispatchEvent(new Event('input', { bubbles: true }));
+      }, [sel, value]);
+    const noErrors = (log) => {
+      const errors = log.filter((l) => l.startsWith('[pageerror]'));
+      assert.deepEqual(errors, [], log.join('\n'));
+    };
+
+    test('?url= opens the ci demo cloud; the default threshold keeps what the native filter kept', async () => {
+      const native = plyVertexCount(join(FIXTURES, 'points_filtered.ply'));
+      const total = plyVertexCount(join(FIXTURES, 'points.ply'));
+      const { page, log } = await open(`/?url=${enc(`${server.base}/data/points.ply`)}`);
+      await layersLoaded(page, 1);
+      await driver.waitFor(page, () => document.querySelector('#kept').dataset.kept !== undefined, null, STEP_TIMEOUT_MS);
+      const k = await kept(page);
+      assert.equal(k.total, total);
+      assert.equal(k.kept, native, `browser kept ${k.kept}, native points_filtered.ply has ${native}`);
+      // The link form replaced the query: the hash names the source.
+      await driver.waitFor(page, () => location.hash.includes('src='), null, STEP_TIMEOUT_MS);
+
+      // RGB vs uncertainty colouring: both drawn, not blank, and different.
+      await setValue(page, '#colour', 'rgb');
+      await nextFrame(page);
+      const rgb = await driver.screenshot(page, '#view');
+      await setValue(page, '#colour', 'log_std_combined');
+      await nextFrame(page);
+      const unc = await driver.screenshot(page, '#view');
+      assert.ok(!rgb.equals(unc), 'RGB and uncertainty colouring look the same');
+      assert.equal(await driver.evaluate(page, () => document.querySelector('#legend').hidden), false);
+      // Blank reference: everything hidden.
+      await driver.evaluate(page, () => document.querySelector('#layers input[type=checkbox]').click());
+      await nextFrame(page);
+      const blank = await driver.screenshot(page, '#view');
+      assert.ok(!blank.equals(rgb) && !blank.equals(unc), 'the cloud did not show');
+      await driver.evaluate(page, () => document.querySelector('#layers input[type=checkbox]').click());
+      await nextFrame(page);
+
+      // The slider: kept count grows with the threshold.
+      const counts = [];
+      for (const v of [0, 200, 400, 600, 800, 1000]) {
+        await setValue(page, '#threshold', String(v));
+        await driver.waitFor(page, (v) => {
+          const k = document.querySelector('#kept');
+          return k.dataset.threshold !== undefined && document.querySelector('#threshold').value === String(v);
+        }, v, STEP_TIMEOUT_MS);
+        // The worker answers each view with counts; wait until they reflect this threshold.
+        await new Promise((r) => setTimeout(r, 300));
+        await nextFrame(page);
+        counts.push((await kept(page)).kept);
+      }
+      for (let i = 1; i < counts.length; i++) assert.ok(counts[i] >= counts[i - 1], `not monotonic: ${counts}`);
+      assert.ok(counts[0] < counts[counts.length - 1], `the slider changed nothing: ${counts}`);
+      noErrors(log);
+      await page.close();
+    });
+
+    test('a share link reproduces the camera, colour mode, threshold and layers', async () => {
+      const src = `${server.base}/data/points.ply`;
+      const src2 = `${server.base}/data/lidar_only.ply`;
+      const { page, log } = await open(`/#src=${enc(src)}&src=${enc(src2)}`);
+      await layersLoaded(page, 2);
+      // Move the camera (drag and wheel), pick a colour, a threshold, a size, hide the lidar layer.
+      const box = await driver.evaluate(page, () => {
+        const r = document.querySelector('#view').getBoundingClientRect();
+        return { x: r.x + r.width / 2, y: r.y + r.height / 2 };
+      });
+      await driver.drag(page, box.x, box.y, box.x + 60, box.y + 25);
+      await setValue(page, '#colour', 'log_std_depth');
+      await setValue(page, '#threshold', '420');
+      await setValue(page, '#size', '4');
+      await driver.evaluate(page, () => document.querySelector('#layers li[data-index="1"] input').click());
+      await nextFrame(page);
+      await driver.evaluate(page, () => document.querySelector('#share').click());
+      await driver.waitFor(page, () => document.querySelector('#share-out').dataset.link, null, STEP_TIMEOUT_MS);
+      const link = await driver.evaluate(page, () => document.querySelector('#share-out').dataset.link);
+      const snap = (p) =>
+        driver.evaluate(p, () => ({
+          matrix: document.querySelector('#view').dataset.viewMatrix,
+          colour: document.querySelector('#colour').value,
+          threshold: document.querySelector('#kept').dataset.threshold,
+          kept: document.querySelector('#kept').dataset.kept,
+          size: document.querySelector('#size').value,
+          layers: [...document.querySelectorAll('#layers input[type=checkbox]')].map((c) => c.checked),
+        }));
+      const a = await snap(page);
+      assert.ok(a.matrix, 'no camera matrix shown');
+      assert.deepEqual(a.layers, [true, false]);
+      const { page: page2, log: log2 } = await open(new URL(link).pathname + new URL(link).hash);
+      await layersLoaded(page2, 2);
+      await driver.waitFor(page2, (k) => document.querySelector('#kept').dataset.kept === k, a.kept, STEP_TIMEOUT_MS);
+      const b = await snap(page2);
+      assert.deepEqual(b, a);
+      noErrors(log);
+      noErrors(log2);
+      await page.close();
+      await page2.close();
+    });
+
+    test('hostile and broken sources each show an error and leave the studio usable', async () => {
+      const srcs = [
+        'javascript:alert(1)',
+        'data:text/plain,hello',
+        `${server.base}/data/missing.ply`,
+        `${server.base}/data/truncated.ply`,
+        `${server.base}/data/huge.ply`,
+        `${server.base}/data/not.ply`,
+      ];
+      const path = '/#' + srcs.map((s) => `src=${enc(s)}`).join('&');
+      const { page, log } = await open(path);
+      const messages = () => driver.evaluate(page, () => [...document.querySelectorAll('#view-messages li')].map((l) => l.textContent));
+      await driver.waitFor(page, () => document.querySelectorAll('#view-messages li').length >= 6, null, STEP_TIMEOUT_MS);
+      const m = (await messages()).join('\n');
+      assert.match(m, /'src' is not an http\(s\) URL/);
+      assert.match(m, /missing\.ply: the server answered HTTP 404/);
+      assert.match(m, /truncated\.ply: .*truncated|truncated\.ply: .*ends/i);
+      assert.match(m, /huge\.ply: /);
+      assert.match(m, /not\.ply: /);
+      assert.equal(await driver.evaluate(page, () => document.querySelectorAll('#layers li').length), 0);
+      // Still usable: a good source opens afterwards, the page did not navigate, no script ran.
+      assert.equal(await driver.evaluate(page, () => document.body.dataset.state), 'ready');
+      assert.equal(await driver.evaluate(page, () => typeof window.__pwned), 'undefined');
+      noErrors(log);
+      await page.close();
+    });
+
+    test('a dropped PLY opens as a layer and cannot be linked', async () => {
+      const { page, log } = await open('/');
+      const b64 = readFileSync(join(FIXTURES, 'points.ply')).toString('base64');
+      await driver.evaluate(page, ([b64]) => {
+        const bin = atob(b64);
+        const data = new Uint8Array(bin.length);
+        for (let i = 0; i < bin.length; i++) data[i] = bin.charCodeAt(i);
+        const dt = new DataTransfer();
+        dt.items.add(new File([data], 'points.ply', { type: 'application/octet-stream' }));
+        const zone = document.querySelector('#drop');
+        for (const type of ['dragenter', 'dragover', 'drop']) {
+          zone.dispatchEvent(new DragEvent(type, { dataTransfer: dt, bubbles: true, cancelable: true }));
+        }
+      }, [b64]);
+      await layersLoaded(page, 1);
+      await driver.waitFor(page, () => document.querySelector('#kept').dataset.kept !== undefined, null, STEP_TIMEOUT_MS);
+      assert.equal((await kept(page)).kept, plyVertexCount(join(FIXTURES, 'points_filtered.ply')));
+      await driver.evaluate(page, () => document.querySelector('#share').click());
+      await driver.waitFor(page, () => document.querySelector('#share-out').dataset.shareable !== undefined, null, STEP_TIMEOUT_MS);
+      assert.equal(await driver.evaluate(page, () => document.querySelector('#share-out').dataset.shareable), 'false');
+      assert.match(await driver.evaluate(page, () => document.querySelector('#share-out').textContent), /silvr serve/);
+      noErrors(log);
+      await page.close();
+    });
+
+    if (driver.serve) {
+      test('silvr serve serves the studio and a reconstruction; its link loads it', async () => {
+        const silvr = join(process.env.CARGO_TARGET_DIR || join(ROOT, 'target'), 'debug', 'silvr');
+        assert.ok(existsSync(silvr), `no ${silvr}: build the workspace first`);
+        const child = spawn(silvr, ['serve', FIXTURES, '--port', '0', '--studio', DIST], { stdio: ['ignore', 'pipe', 'pipe'] });
+        try {
+          const link = await new Promise((ok, fail) => {
+            let out = '';
+            const t = setTimeout(() => fail(new Error(`silvr serve printed no link: ${out}`)), 20_000);
+            child.stdout.on('data', (d) => {
+              out += d;
+              const m = out.match(/^open: (\S+)$/m);
+              if (m) {
+                clearTimeout(t);
+                ok(m[1]);
+              }
+            });
+            child.on('exit', (c) => fail(new Error(`silvr serve exited (${c}): ${out}`)));
+          });
+          assert.match(link, /#src=/);
+          const { page, log } = await driver.newPage(browser);
+          await driver.goto(page, link);
+          await driver.waitFor(page, () => document.body.dataset.state !== 'loading', null, STARTUP_TIMEOUT_MS);
+          await layersLoaded(page, 3);
+          const names = await driver.evaluate(page, () => [...document.querySelectorAll('#layers li')].map((l) => l.textContent));
+          assert.ok(names.some((n) => n.startsWith('points.ply')), names.join('\n'));
+          noErrors(log);
+          await page.close();
+        } finally {
+          child.kill();
+        }
+      });
+    }
+  });
+}
