@@ -11,10 +11,10 @@ use web_sys::{
     HtmlInputElement, MessageEvent, Worker,
 };
 
-use crate::protocol::{
-    capitalize, describe_size, explain_error, group_digits, Adapter, BrowserInfo, Check,
-    FromWorker, ToWorker,
-};
+use crate::protocol::{capitalize, describe_size, explain_error, group_digits};
+use silvr_core::gpu::AdapterReport;
+use silvr_core::lidar::project::SelfCheck;
+use silvr_worker::{BrowserAdapterInfo, FromPage, Stage, ToPage};
 
 const TITLE: &str = "SiLVR Studio";
 /// Points of the self-check the "Run again" button asks for (the worker's startup check uses 4 000).
@@ -88,7 +88,7 @@ fn start_worker(page: &Shared) -> Result<Worker, JsValue> {
                 }
                 return;
             }
-            match serde_wasm_bindgen::from_value::<FromWorker>(ev.data()) {
+            match serde_wasm_bindgen::from_value::<ToPage>(ev.data()) {
                 Ok(msg) => on_worker_message(&page, msg),
                 Err(e) => web_sys::console::warn_2(
                     &format!("studio: unexpected worker message ({e})").into(),
@@ -117,11 +117,11 @@ fn start_worker(page: &Shared) -> Result<Worker, JsValue> {
     Ok(worker)
 }
 
-fn on_worker_message(page: &Shared, msg: FromWorker) {
+fn on_worker_message(page: &Shared, msg: ToPage) {
     let doc = page.borrow().doc.clone();
     crate::viewer::worker_listening();
     match msg {
-        FromWorker::Adapter { adapter, browser } => {
+        ToPage::Adapter { adapter, browser } => {
             show_adapter(&doc, &adapter, browser.as_ref());
             set_state(
                 &doc,
@@ -129,7 +129,7 @@ fn on_worker_message(page: &Shared, msg: FromWorker) {
                 "Checking the projection kernel against the CPU…",
             );
         }
-        FromWorker::Projection {
+        ToPage::Projection {
             id,
             seed,
             n,
@@ -156,22 +156,24 @@ fn on_worker_message(page: &Shared, msg: FromWorker) {
                 set_status(&doc, &status);
             }
         }
-        FromWorker::Progress {
+        ToPage::Progress {
             source,
             stage,
             loaded,
             total,
+            ..
         } => crate::viewer::on_progress(&source, &stage, loaded, total),
-        FromWorker::Layer { layer } => crate::viewer::on_layer(layer),
-        FromWorker::LoadError { source, message } => {
-            crate::viewer::on_load_error(&source, &message)
-        }
-        FromWorker::Filter { counts } => crate::viewer::on_filter(counts),
-        FromWorker::Frame { n, ms, points } => crate::viewer::on_frame(n, ms, points),
-        FromWorker::Bench {
+        ToPage::Layer { layer, .. } => crate::viewer::on_layer(layer),
+        ToPage::LoadError {
+            source, message, ..
+        } => crate::viewer::on_load_error(&source, &message),
+        ToPage::Filter { counts } => crate::viewer::on_filter(counts),
+        ToPage::Frame { n, ms, points } => crate::viewer::on_frame(n, ms, points),
+        ToPage::Bench {
             frames,
             ms_per_frame,
             points,
+            ..
         } => {
             if let Some(c) = by_id(&doc, "view") {
                 c.set_attribute("data-bench-ms", &ms_per_frame.to_string())
@@ -182,18 +184,20 @@ fn on_worker_message(page: &Shared, msg: FromWorker) {
                     .ok();
             }
         }
-        FromWorker::Error { stage, message, .. } if stage == "view" => {
-            crate::viewer::on_view_error(&capitalize(&message))
-        }
-        FromWorker::Error {
+        ToPage::Error {
+            stage: Stage::View,
+            message,
+            ..
+        } => crate::viewer::on_view_error(&capitalize(&message)),
+        ToPage::Error {
             id,
             stage,
             message,
             detail,
         } => {
-            let mut text = explain_error(&stage, &message);
-            let fatal = id.is_none() || stage == "webgpu" || stage == "panic";
-            if stage == "webgpu" {
+            let mut text = explain_error(stage, &message);
+            let fatal = id.is_none() || matches!(stage, Stage::Webgpu | Stage::Panic);
+            if stage == Stage::Webgpu {
                 if let Some(el) = by_id(&doc, "adapter") {
                     clear(&el);
                     el.set_attribute("data-error", "webgpu").ok();
@@ -230,11 +234,11 @@ fn request_check(page: &Shared) {
     };
     let Some(worker) = worker else { return };
     let doc = page.borrow().doc.clone();
-    let msg = ToWorker::RunCheck {
-        id,
-        n: RERUN_POINTS,
+    let msg = FromPage::RunCheck {
+        id: Some(id),
+        n: Some(RERUN_POINTS),
         // A new problem each time, reproducible from the id.
-        seed: 1000 + id as u64,
+        seed: Some(1000 + id as u64),
     };
     match msg.serialize(&serde_wasm_bindgen::Serializer::json_compatible()) {
         Ok(v) => {
@@ -252,7 +256,7 @@ fn request_check(page: &Shared) {
     }
 }
 
-fn show_adapter(doc: &web_sys::Document, a: &Adapter, browser: Option<&BrowserInfo>) {
+fn show_adapter(doc: &web_sys::Document, a: &AdapterReport, browser: Option<&BrowserAdapterInfo>) {
     let Some(el) = by_id(doc, "adapter") else {
         return;
     };
@@ -276,7 +280,7 @@ fn show_adapter(doc: &web_sys::Document, a: &Adapter, browser: Option<&BrowserIn
         ("Backend", a.backend.clone()),
         ("Device type", a.device_type.clone()),
     ];
-    if let Some(summary) = browser.and_then(BrowserInfo::summary) {
+    if let Some(summary) = browser.and_then(BrowserAdapterInfo::summary) {
         rows.push(("Vendor", summary));
     }
     let driver = format!("{} {}", a.driver, a.driver_info).trim().to_string();
@@ -289,12 +293,12 @@ fn show_adapter(doc: &web_sys::Document, a: &Adapter, browser: Option<&BrowserIn
             format!("≤ {} invocations", a.max_compute_invocations_per_workgroup),
         ));
     }
-    if a.max_storage_buffer_binding_size > 0.0 {
+    if a.max_storage_buffer_binding_size > 0 {
         rows.push((
             "Storage binding",
             format!(
                 "≤ {:.0} MiB",
-                a.max_storage_buffer_binding_size / (1024.0 * 1024.0)
+                a.max_storage_buffer_binding_size as f64 / (1024.0 * 1024.0)
             ),
         ));
     }
@@ -312,7 +316,7 @@ fn show_adapter(doc: &web_sys::Document, a: &Adapter, browser: Option<&BrowserIn
 
 fn show_projection(
     doc: &web_sys::Document,
-    c: &Check,
+    c: &SelfCheck,
     passed: bool,
     n: usize,
     seed: u64,

@@ -1,120 +1,9 @@
-//! What the worker sends (the page's view of `silvr_worker::ToPage`) and how the page words it.
-//!
-//! The page does not link the engine: it mirrors only the fields it shows, and ignores the rest.
+//! How the page words what the worker sends. The messages themselves are the worker's types
+//! (`silvr_worker::{FromPage, ToPage}`), defined once for both sides.
 
 #![cfg_attr(not(target_arch = "wasm32"), allow(dead_code))]
 
-use serde::{Deserialize, Serialize};
-
-/// Messages to the worker (`silvr_worker::FromPage`).
-#[derive(Clone, Debug, Serialize)]
-#[serde(tag = "type", rename_all = "kebab-case")]
-pub enum ToWorker {
-    /// Run the projection self-check again.
-    RunCheck { id: u32, n: usize, seed: u64 },
-}
-
-/// Messages from the worker.
-#[derive(Clone, Debug, Deserialize)]
-#[serde(tag = "type", rename_all = "kebab-case")]
-pub enum FromWorker {
-    Adapter {
-        adapter: Adapter,
-        #[serde(default)]
-        browser: Option<BrowserInfo>,
-    },
-    Projection {
-        id: Option<u32>,
-        seed: u64,
-        n: usize,
-        elapsed_ms: f64,
-        passed: bool,
-        check: Check,
-    },
-    Progress {
-        source: String,
-        stage: String,
-        loaded: f64,
-        #[serde(default)]
-        total: Option<f64>,
-    },
-    Layer {
-        layer: silvr_worker::studio::LayerInfo,
-    },
-    LoadError {
-        source: String,
-        message: String,
-    },
-    Filter {
-        counts: silvr_worker::studio::FilterCounts,
-    },
-    Frame {
-        n: u32,
-        ms: f64,
-        points: u64,
-    },
-    Bench {
-        frames: u32,
-        ms_per_frame: f64,
-        points: u64,
-    },
-    Error {
-        id: Option<u32>,
-        stage: String,
-        message: String,
-        #[serde(default)]
-        detail: Option<String>,
-    },
-}
-
-/// `silvr_core::gpu::AdapterReport`, as far as the page shows it.
-#[derive(Clone, Debug, Deserialize)]
-pub struct Adapter {
-    pub name: String,
-    pub backend: String,
-    pub device_type: String,
-    #[serde(default)]
-    pub driver: String,
-    #[serde(default)]
-    pub driver_info: String,
-    pub software: bool,
-    #[serde(default)]
-    pub max_storage_buffer_binding_size: f64,
-    #[serde(default)]
-    pub max_compute_invocations_per_workgroup: u32,
-}
-
-/// `GPUAdapterInfo` as the worker read it.
-#[derive(Clone, Debug, Default, Deserialize)]
-#[serde(default)]
-pub struct BrowserInfo {
-    pub vendor: String,
-    pub architecture: String,
-    pub device: String,
-}
-
-impl BrowserInfo {
-    /// `google / swiftshader`, or `None` when the browser says nothing.
-    pub fn summary(&self) -> Option<String> {
-        let parts: Vec<&str> = [&self.vendor, &self.architecture, &self.device]
-            .into_iter()
-            .map(|s| s.trim())
-            .filter(|s| !s.is_empty())
-            .collect();
-        (!parts.is_empty()).then(|| parts.join(" / "))
-    }
-}
-
-/// `silvr_core::lidar::project::SelfCheck`.
-#[derive(Clone, Debug, Deserialize)]
-pub struct Check {
-    pub points: usize,
-    pub pixels: usize,
-    pub filled_pixels: usize,
-    pub winner_mismatches: usize,
-    pub max_uv_error_px: f64,
-    pub max_range_rel_error: f64,
-}
+use silvr_worker::Stage;
 
 /// `1234567` → `"1,234,567"`.
 pub fn group_digits(n: u64) -> String {
@@ -151,13 +40,13 @@ pub fn describe_size(bytes: u64) -> String {
 
 /// What a worker error means for someone looking at the page (one or two sentences; the worker's
 /// technical detail is shown separately).
-pub fn explain_error(stage: &str, message: &str) -> String {
+pub fn explain_error(stage: Stage, message: &str) -> String {
     match stage {
-        "webgpu" => "SiLVR Studio needs WebGPU, and this browser offers no usable adapter. Use a recent \
+        Stage::Webgpu => "SiLVR Studio needs WebGPU, and this browser offers no usable adapter. Use a recent \
                      Chrome or Edge (or Chromium with --enable-unsafe-webgpu), or Firefox or Safari with \
                      WebGPU enabled."
             .to_string(),
-        "panic" => format!("The engine worker crashed; reload the page. ({message})"),
+        Stage::Panic => format!("The engine worker crashed; reload the page. ({message})"),
         _ => capitalize(message),
     }
 }
@@ -174,6 +63,7 @@ pub fn capitalize(s: &str) -> String {
 #[cfg(all(test, not(target_arch = "wasm32")))]
 mod tests {
     use super::*;
+    use silvr_worker::ToPage;
 
     #[test]
     fn sizes_are_exact_and_readable() {
@@ -189,10 +79,10 @@ mod tests {
 
     #[test]
     fn run_check_request_is_tagged() {
-        let v = serde_json::to_value(ToWorker::RunCheck {
-            id: 3,
-            n: 20_000,
-            seed: 3,
+        let v = serde_json::to_value(silvr_worker::FromPage::RunCheck {
+            id: Some(3),
+            n: Some(20_000),
+            seed: Some(3),
         })
         .unwrap();
         assert_eq!(v["type"], "run-check");
@@ -202,29 +92,29 @@ mod tests {
 
     #[test]
     fn errors_read_well() {
-        assert!(explain_error("webgpu", "x").contains("needs WebGPU"));
+        assert!(explain_error(Stage::Webgpu, "x").contains("needs WebGPU"));
         assert_eq!(
-            explain_error("projection", "the kernel failed"),
+            explain_error(Stage::Projection, "the kernel failed"),
             "The kernel failed"
         );
     }
 
     #[test]
     fn worker_messages_parse() {
-        let m: FromWorker = serde_json::from_str(
+        let m: ToPage = serde_json::from_str(
             r#"{"type":"adapter","adapter":{"name":"SwiftShader","backend":"BrowserWebGpu",
                 "device_type":"Cpu","driver":"","driver_info":"","software":true,
                 "max_storage_buffer_binding_size":1073741824,"max_buffer_size":1073741824,
                 "max_compute_workgroup_storage_size":32768,"max_compute_invocations_per_workgroup":256}}"#,
         )
         .unwrap();
-        assert!(matches!(m, FromWorker::Adapter { adapter, browser: None } if adapter.software));
-        let m: FromWorker = serde_json::from_str(
+        assert!(matches!(m, ToPage::Adapter { adapter, browser: None } if adapter.software));
+        let m: ToPage = serde_json::from_str(
             r#"{"type":"projection","id":null,"seed":7,"n":4000,"elapsed_ms":12,"passed":true,
                 "check":{"points":4000,"pixels":97200,"filled_pixels":3000,"winner_mismatches":0,
                 "max_uv_error_px":0.0001,"max_range_rel_error":1e-7}}"#,
         )
         .unwrap();
-        assert!(matches!(m, FromWorker::Projection { passed: true, .. }));
+        assert!(matches!(m, ToPage::Projection { passed: true, .. }));
     }
 }

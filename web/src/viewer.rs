@@ -1012,6 +1012,15 @@ fn wire_camera(v: &Shared, canvas: &HtmlCanvasElement) {
         });
     }
     listen(canvas, "contextmenu", |ev: Event| ev.prevent_default());
+    // Benchmarks (and the curious): `#view.dispatchEvent(new CustomEvent('silvr-bench', {detail: N}))`
+    // draws N frames back to back; the time per frame lands in `#view[data-bench-ms]`.
+    {
+        let v = v.clone();
+        listen(canvas, "silvr-bench", move |ev: web_sys::CustomEvent| {
+            let frames = ev.detail().as_f64().unwrap_or(20.0).clamp(1.0, 1000.0) as u32;
+            post(&v, &silvr_worker::FromPage::Bench { id: 0, frames });
+        });
+    }
     {
         let v = v.clone();
         listen(canvas, "wheel", move |ev: WheelEvent| {

@@ -60,7 +60,7 @@ pub fn check_camera() -> CameraModel {
 }
 
 /// Where an error happened, for the page to word it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Stage {
     /// No WebGPU adapter, or it is too limited, or no device could be opened.
@@ -77,7 +77,8 @@ pub enum Stage {
 
 /// The browser's own description of the adapter (`GPUAdapterInfo`). wgpu takes the adapter name from
 /// `description`, which browsers usually leave empty for privacy; vendor and architecture are still set.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct BrowserAdapterInfo {
     pub vendor: String,
     pub architecture: String,
@@ -86,6 +87,16 @@ pub struct BrowserAdapterInfo {
 }
 
 impl BrowserAdapterInfo {
+    /// `google / swiftshader`: vendor, architecture and device as the browser gave them, or `None`.
+    pub fn summary(&self) -> Option<String> {
+        let parts: Vec<&str> = [&self.vendor, &self.architecture, &self.device]
+            .into_iter()
+            .map(|s| s.trim())
+            .filter(|s| !s.is_empty())
+            .collect();
+        (!parts.is_empty()).then(|| parts.join(" / "))
+    }
+
     /// A readable name: the description, else vendor, architecture and device (e.g. `google swiftshader`).
     pub fn display_name(&self) -> Option<String> {
         if !self.description.trim().is_empty() {
@@ -108,13 +119,14 @@ pub fn name_adapter(report: &mut AdapterReport, info: &BrowserAdapterInfo) {
     }
 }
 
-/// Messages from the worker to the page.
-#[derive(Debug, Serialize)]
+/// Messages from the worker to the page (the page reads them with the same type).
+#[derive(Debug, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "kebab-case")]
 pub enum ToPage {
     Adapter {
         adapter: AdapterReport,
         /// `GPUAdapterInfo` as the browser reports it, where it could be read.
+        #[serde(default)]
         browser: Option<BrowserAdapterInfo>,
     },
     Projection {
@@ -158,6 +170,7 @@ pub enum ToPage {
         /// One sentence for people.
         message: String,
         /// The underlying error, for the curious and for bug reports.
+        #[serde(default)]
         detail: Option<String>,
     },
 }
@@ -168,11 +181,11 @@ pub enum ToPage {
 pub enum FromPage {
     /// Runs the projection self-check (defaults: [`STARTUP_POINTS`] points, seed [`STARTUP_SEED`]).
     RunCheck {
-        #[serde(default)]
+        #[serde(default, skip_serializing_if = "Option::is_none")]
         id: Option<u32>,
-        #[serde(default)]
+        #[serde(default, skip_serializing_if = "Option::is_none")]
         n: Option<usize>,
-        #[serde(default)]
+        #[serde(default, skip_serializing_if = "Option::is_none")]
         seed: Option<u64>,
     },
     /// The canvas (its `OffscreenCanvas` travels beside the message) changed size.

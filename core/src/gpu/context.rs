@@ -87,7 +87,7 @@ pub struct GpuOptions {
 }
 
 /// What adapter we run on, for logs, the CLI's `gpu-info`, the studio page and benchmark records.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, serde::Deserialize)]
 pub struct AdapterReport {
     pub name: String,
     pub backend: String,

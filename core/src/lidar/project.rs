@@ -347,7 +347,7 @@ pub fn sample_points(camera: &CameraModel, seed: u64, n: usize) -> Vec<DVec3> {
 }
 
 /// The outcome of running the kernel and its reference on [`sample_points`].
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct SelfCheck {
     pub points: usize,
     pub pixels: usize,
