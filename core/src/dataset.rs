@@ -429,8 +429,13 @@ pub type FrameList = (Vec<NsFrame>, Vec<String>, Vec<String>);
 /// (instant-ngp / nerfstudio single-camera files) and accepting w/h written as floats.
 pub fn read_frames(path: &Path) -> Result<FrameList, DatasetError> {
     let text = fs::read_to_string(path).map_err(io_err(path))?;
+    parse_frames(&text, path)
+}
+
+/// [`read_frames`] of text already read (`path` names it in errors): the studio reads dropped files.
+pub fn parse_frames(text: &str, path: &Path) -> Result<FrameList, DatasetError> {
     let root: Value =
-        serde_json::from_str(&text).map_err(|e| fmt_err(path, format!("not JSON: {e}")))?;
+        serde_json::from_str(text).map_err(|e| fmt_err(path, format!("not JSON: {e}")))?;
     let frames = root
         .get("frames")
         .and_then(Value::as_array)

@@ -229,6 +229,25 @@ export function viewerSuite(driver) {
       await page2.close();
     });
 
+    test('a lost WebGPU device is replaced and the view comes back', async () => {
+      const { page, log } = await open(`/#src=${enc(`${server.base}/data/points.ply`)}`);
+      await layersLoaded(page, 1);
+      await nextFrame(page);
+      const before = await driver.screenshot(page, '#view');
+      await driver.evaluate(page, () => document.querySelector('#view').dispatchEvent(new CustomEvent('silvr-lose-device')));
+      await driver.waitFor(page, () => [...document.querySelectorAll('#view-messages li')].some((l) => l.textContent.includes('re-created')), null, STEP_TIMEOUT_MS);
+      // Draw again on the new device (a view change) and compare.
+      await setValue(page, '#size', '2.5');
+      await nextFrame(page);
+      await setValue(page, '#size', '2');
+      await nextFrame(page);
+      const after = await driver.screenshot(page, '#view');
+      assert.ok(after.equals(before), 'the view after the device loss differs from before');
+      assert.equal(await driver.evaluate(page, () => document.body.dataset.state), 'ready');
+      noErrors(log);
+      await page.close();
+    });
+
     test('hostile and broken sources each show an error and leave the studio usable', async () => {
       const srcs = [
         'javascript:alert(1)',

@@ -202,11 +202,12 @@ pub fn open_files(files: &[File]) {
     let Some(v) = viewer() else { return };
     for f in files {
         let name = f.name();
-        if !name.to_ascii_lowercase().ends_with(".ply") {
+        let lower = name.to_ascii_lowercase();
+        if !(lower.ends_with(".ply") || lower.ends_with(".json")) {
             message(
                 "warn",
                 &format!(
-                    "{}: not a .ply file; the view opens PLY reconstructions",
+                    "{}: not a .ply or transforms.json; the view opens PLY reconstructions and a dataset's cameras",
                     short(&name)
                 ),
             );
@@ -1019,6 +1020,13 @@ fn wire_camera(v: &Shared, canvas: &HtmlCanvasElement) {
         listen(canvas, "silvr-bench", move |ev: web_sys::CustomEvent| {
             let frames = ev.detail().as_f64().unwrap_or(20.0).clamp(1.0, 1000.0) as u32;
             post(&v, &silvr_worker::FromPage::Bench { id: 0, frames });
+        });
+    }
+    // Tests of the recovery: `silvr-lose-device` destroys the worker's device.
+    {
+        let v = v.clone();
+        listen(canvas, "silvr-lose-device", move |_: Event| {
+            post(&v, &silvr_worker::FromPage::DebugLoseDevice);
         });
     }
     {

@@ -202,6 +202,8 @@ pub enum FromPage {
     },
     /// Draw `frames` frames back to back and report the time per frame.
     Bench { id: u32, frames: u32 },
+    /// Destroys the device, as a driver reset or a GPU process crash would (tests of the recovery).
+    DebugLoseDevice,
 }
 
 impl FromPage {
@@ -212,7 +214,7 @@ impl FromPage {
             FromPage::OpenUrl { id, .. }
             | FromPage::Download { id, .. }
             | FromPage::Bench { id, .. } => Some(*id),
-            FromPage::Resize { .. } | FromPage::View { .. } => None,
+            FromPage::Resize { .. } | FromPage::View { .. } | FromPage::DebugLoseDevice => None,
         }
     }
 }

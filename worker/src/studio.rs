@@ -108,6 +108,60 @@ pub fn parse_layer(bytes: &[u8], name: &str, source: &str, index: u32) -> Result
     })
 }
 
+/// Most camera frames a `transforms.json` may list (a day of driving at 10 Hz × 3 cameras is ~1 M).
+pub const MAX_CAMERAS: usize = 2_000_000;
+
+/// A dataset's cameras (nerfstudio `transforms.json`, the layout `silvr` writes) as a layer: each camera
+/// centre, and a 0.5 m stick of points along its optical axis, so the trajectory and where the rig looked
+/// show beside the reconstructions (same metric frame). Training frames blue, held-out frames orange.
+pub fn parse_cameras(bytes: &[u8], name: &str, source: &str, index: u32) -> Result<Layer, String> {
+    let text = std::str::from_utf8(bytes).map_err(|_| format!("{name}: not UTF-8 text"))?;
+    let path = std::path::Path::new(name);
+    let (frames, _, val) =
+        silvr_core::dataset::parse_frames(text, path).map_err(|e| e.to_string())?;
+    if frames.is_empty() {
+        return Err(format!("{name}: the file lists no camera frames"));
+    }
+    if frames.len() > MAX_CAMERAS {
+        return Err(format!(
+            "{name}: {} frames, more than the {MAX_CAMERAS} the studio shows",
+            frames.len()
+        ));
+    }
+    let mut cloud = silvr_core::pointcloud::PointCloud::new();
+    for f in &frames {
+        let (_, pose) = f.camera(path).map_err(|e| e.to_string())?;
+        let held_out = val.iter().any(|v| v == &f.file_path);
+        let colour = if held_out {
+            [240, 150, 30]
+        } else {
+            [60, 140, 255]
+        };
+        let forward = pose.rot * DVec3::Z;
+        for k in 0..=10 {
+            cloud.push_colored(pose.trans + forward * (0.05 * k as f64), colour);
+        }
+    }
+    let view = ViewCloud::from_cloud(&cloud, ViewCloud::MAX_POINTS);
+    Ok(Layer {
+        info: LayerInfo {
+            index,
+            name: format!("{name} — {} cameras", frames.len()),
+            source: source.to_string(),
+            points: view.len() as u64,
+            total: view.total as u64,
+            stride: view.stride as u64,
+            min: view.min.to_array(),
+            max: view.max.to_array(),
+            has_rgb: true,
+            scalars: Vec::new(),
+            gpu_bytes: 0,
+        },
+        cloud: view,
+        gpu: None,
+    })
+}
+
 /// The filter's outcome over the visible layers.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct FilterCounts {
@@ -307,6 +361,25 @@ mod tests {
             ..ViewState::default()
         };
         assert_eq!(layers.counts(&hidden).total, 0);
+    }
+
+    #[test]
+    fn a_transforms_json_becomes_a_camera_layer() {
+        let json = br#"{"fl_x": 100, "fl_y": 100, "cx": 50, "cy": 40, "w": 100, "h": 80,
+            "frames": [
+              {"file_path": "images/a.png", "transform_matrix": [[1,0,0,2],[0,1,0,3],[0,0,1,4],[0,0,0,1]]},
+              {"file_path": "images/b.png", "transform_matrix": [[1,0,0,5],[0,1,0,3],[0,0,1,4],[0,0,0,1]]}
+            ], "val_filenames": ["images/b.png"]}"#;
+        let l = parse_cameras(json, "transforms.json", "file:transforms.json", 3).unwrap();
+        assert_eq!(l.info.points, 22);
+        assert_eq!(l.info.index, 3);
+        assert!(l.info.name.contains("2 cameras"));
+        // Camera centres at the matrices' translations.
+        assert!((l.info.min[0] - 2.0).abs() < 1e-9 && (l.info.max[0] - 5.0).abs() < 1e-9);
+        let e = parse_cameras(b"{\"frames\": 3}", "t.json", "", 0)
+            .err()
+            .unwrap();
+        assert!(e.contains("t.json"), "{e}");
     }
 
     #[test]

@@ -10,7 +10,7 @@ use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::spawn_local;
 use web_sys::{DedicatedWorkerGlobalScope, MessageEvent};
 
-use crate::studio::{parse_layer, Layers, MAX_FILE_BYTES, MAX_LAYERS};
+use crate::studio::{parse_cameras, parse_layer, Layers, MAX_FILE_BYTES, MAX_LAYERS};
 use crate::view::{is_fetchable, Camera, ViewState};
 use crate::{
     name_adapter, run_check, BrowserAdapterInfo, FromPage, Stage, ToPage, STARTUP_POINTS,
@@ -32,6 +32,9 @@ struct Studio {
     layers: Layers,
     view: ViewState,
     target: Option<Target>,
+    /// The canvas the page handed over (kept to make a new surface after a device loss).
+    canvas: Option<(web_sys::OffscreenCanvas, u32, u32)>,
+    recovering: bool,
     frames: u32,
     last_counts: Option<crate::studio::FilterCounts>,
 }
@@ -109,6 +112,8 @@ async fn startup(state: Shared) {
         layers: Layers::default(),
         view: ViewState::default(),
         target: None,
+        canvas: None,
+        recovering: false,
         frames: 0,
         last_counts: None,
     }));
@@ -232,7 +237,74 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
             }
         }
         FromPage::Bench { id, frames } => spawn_local(bench(studio.clone(), id, frames)),
+        FromPage::DebugLoseDevice => {
+            let gpu = studio.borrow().gpu.clone();
+            gpu.device.destroy();
+            let studio = studio.clone();
+            // The browser reports the loss asynchronously; draw once it has.
+            spawn_local(async move {
+                for _ in 0..50 {
+                    sleep_ms(100).await;
+                    if studio.borrow().gpu.check_lost().is_err() {
+                        break;
+                    }
+                }
+                draw(&studio);
+            });
+        }
     }
+}
+
+async fn sleep_ms(ms: i32) {
+    let promise = js_sys::Promise::new(&mut |resolve, _| {
+        let _ = scope().set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, ms);
+    });
+    let _ = wasm_bindgen_futures::JsFuture::from(promise).await;
+}
+
+/// After a device loss: a new device, the layers uploaded again from the worker's copies, a new surface
+/// on the same canvas. The page is told, and keeps its view.
+fn recover(studio: &Rc<RefCell<Studio>>, why: String) {
+    {
+        let mut s = studio.borrow_mut();
+        if s.recovering {
+            return;
+        }
+        s.recovering = true;
+        s.target = None;
+        for l in &mut s.layers.layers {
+            l.gpu = None;
+        }
+    }
+    let studio = studio.clone();
+    spawn_local(async move {
+        match Gpu::new(GpuOptions::default()).await {
+            Ok(gpu) => {
+                let canvas = {
+                    let mut s = studio.borrow_mut();
+                    s.gpu = gpu;
+                    s.recovering = false;
+                    s.canvas.clone()
+                };
+                post(&view_error(
+                    None,
+                    &format!(
+                        "the GPU device was lost ({why}); the view was re-created on a new device"
+                    ),
+                ));
+                if let Some((canvas, w, h)) = canvas {
+                    attach(studio, canvas, w, h).await;
+                }
+            }
+            Err(e) => {
+                studio.borrow_mut().recovering = false;
+                post(&view_error(
+                    None,
+                    &format!("the GPU device was lost ({why}) and no new one could be opened: {e}"),
+                ));
+            }
+        }
+    });
 }
 
 fn view_error(id: Option<u32>, message: &str) -> ToPage {
@@ -247,6 +319,7 @@ fn view_error(id: Option<u32>, message: &str) -> ToPage {
 /// Makes the canvas the view's target: a surface from the engine's own instance, on its device.
 async fn attach(studio: Rc<RefCell<Studio>>, canvas: web_sys::OffscreenCanvas, w: u32, h: u32) {
     let gpu = studio.borrow().gpu.clone();
+    studio.borrow_mut().canvas = Some((canvas.clone(), w, h));
     let surface = match gpu
         .instance
         .create_surface(wgpu::SurfaceTarget::OffscreenCanvas(canvas))
@@ -332,6 +405,9 @@ fn resize(studio: &Rc<RefCell<Studio>>, width: u32, height: u32) {
     let gpu = s.gpu.clone();
     let max = gpu.device.limits().max_texture_dimension_2d;
     let (w, h) = (width.clamp(1, max), height.clamp(1, max));
+    if let Some(c) = s.canvas.as_mut() {
+        (c.1, c.2) = (w, h);
+    }
     if let Some(t) = s.target.as_mut() {
         if (t.config.width, t.config.height) != (w, h) {
             t.config.width = w;
@@ -368,6 +444,10 @@ fn upload_pending(studio: &Rc<RefCell<Studio>>) {
 
 /// Draws the view into the canvas and reports the frame when the GPU has finished it.
 fn draw(studio: &Rc<RefCell<Studio>>) {
+    let lost = studio.borrow().gpu.check_lost().err();
+    if let Some(e) = lost {
+        return recover(studio, e.to_string());
+    }
     let mut s = studio.borrow_mut();
     let Some(t) = s.target.as_ref() else { return };
     let texture = match t.surface.get_current_texture() {
@@ -595,7 +675,12 @@ fn add_layer(studio: &Rc<RefCell<Studio>>, id: u32, bytes: &[u8], name: &str, so
     // The request id is the layer's number: the page numbers a link's sources by their order, so a
     // link's `hide=` means the same layers whichever file arrives first.
     let index = id;
-    match parse_layer(bytes, name, source, index) {
+    let parsed = if name.to_ascii_lowercase().ends_with(".json") {
+        parse_cameras(bytes, name, source, index)
+    } else {
+        parse_layer(bytes, name, source, index)
+    };
+    match parsed {
         Ok(layer) => {
             {
                 let mut s = studio.borrow_mut();
