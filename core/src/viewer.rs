@@ -101,6 +101,10 @@ pub struct ViewCloud {
     /// Bounds of the kept points (metres, the file's frame).
     pub min: DVec3,
     pub max: DVec3,
+    /// The 1st-99th percentile box per axis: what "fit to view" frames, so a few far points (a
+    /// radiance field's floaters, a lidar return off a distant tower) do not shrink the scene to a dot.
+    pub fit_min: DVec3,
+    pub fit_max: DVec3,
 }
 
 impl ViewCloud {
@@ -126,6 +130,7 @@ impl ViewCloud {
             (min, max) = (DVec3::ZERO, DVec3::ZERO);
         }
         let origin = (min + max) * 0.5;
+        let (fit_min, fit_max) = robust_box(&keep, &cloud.positions).unwrap_or((min, max));
         let positions = keep
             .iter()
             .map(|&i| (cloud.positions[i] - origin).as_vec3().to_array())
@@ -152,6 +157,8 @@ impl ViewCloud {
             stride,
             min,
             max,
+            fit_min,
+            fit_max,
         }
     }
 
@@ -194,6 +201,25 @@ impl ViewCloud {
         }
         Some(out)
     }
+}
+
+/// The 1st and 99th percentile of each axis over (at most 100 k of) the points `keep` selects.
+fn robust_box(keep: &[usize], positions: &[DVec3]) -> Option<(DVec3, DVec3)> {
+    if keep.is_empty() {
+        return None;
+    }
+    let step = keep.len().div_ceil(100_000).max(1);
+    let sample: Vec<DVec3> = keep.iter().step_by(step).map(|&i| positions[i]).collect();
+    let mut lo = [0.0; 3];
+    let mut hi = [0.0; 3];
+    for axis in 0..3 {
+        let mut v: Vec<f64> = sample.iter().map(|p| p[axis]).collect();
+        v.sort_by(f64::total_cmp);
+        let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+        lo[axis] = at(0.01);
+        hi[axis] = at(0.99);
+    }
+    Some((DVec3::from_array(lo), DVec3::from_array(hi)))
 }
 
 /// How a layer is coloured.

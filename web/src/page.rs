@@ -168,7 +168,7 @@ fn on_worker_message(page: &Shared, msg: ToPage) {
             source, message, ..
         } => crate::viewer::on_load_error(&source, &message),
         ToPage::Filter { counts } => crate::viewer::on_filter(counts),
-        ToPage::Frame { n, ms, points } => crate::viewer::on_frame(n, ms, points),
+        ToPage::Frame { n, ms, points, seq } => crate::viewer::on_frame(n, ms, points, seq),
         ToPage::Bench {
             frames,
             ms_per_frame,

@@ -42,6 +42,8 @@ struct Viewer {
     hash_pending: bool,
     drag: Option<(f64, f64, bool)>,
     frames: u32,
+    /// Views sent so far (`#view[data-seq]`); frames report the one they drew (`data-drawn-seq`).
+    seq: u32,
     /// Messages held until the worker listens: a worker's wasm sets its message handler only after it
     /// has loaded, and messages that arrive before that are lost.
     outbox: Option<Vec<(JsValue, Option<js_sys::Array>)>>,
@@ -88,6 +90,7 @@ pub fn start(worker: &Worker) {
         hash_pending: false,
         drag: None,
         frames: 0,
+        seq: 0,
         outbox: Some(Vec::new()),
     }));
     VIEWER.with(|cell| *cell.borrow_mut() = Some(v.clone()));
@@ -295,12 +298,13 @@ pub fn on_filter(counts: FilterCounts) {
     show_counts(&v);
 }
 
-pub fn on_frame(n: u32, ms: f64, points: u64) {
+pub fn on_frame(n: u32, ms: f64, points: u64, seq: u32) {
     let Some(v) = viewer() else { return };
     v.borrow_mut().frames = n;
     let doc = document();
     if let Some(c) = by_id(&doc, "view") {
         c.set_attribute("data-frames", &n.to_string()).ok();
+        c.set_attribute("data-drawn-seq", &seq.to_string()).ok();
     }
     if let Some(el) = by_id(&doc, "frame") {
         el.set_text_content(Some(&format!(
@@ -350,16 +354,34 @@ fn schedule(v: &Shared) {
         return;
     }
     v.borrow_mut().frame_pending = true;
+    set_view_attr("data-pending", "1");
     let v2 = v.clone();
     let cb = Closure::once_into_js(move || {
-        v2.borrow_mut().frame_pending = false;
-        let view = v2.borrow().state.clone();
-        post(&v2, &silvr_worker::FromPage::View { view });
+        {
+            let mut b = v2.borrow_mut();
+            b.frame_pending = false;
+            // The state in force is exactly what its link restores (angles wrapped, ranges clamped).
+            b.state.camera = b.state.camera.and_then(|c| c.clamped());
+        }
+        let (view, seq) = {
+            let mut b = v2.borrow_mut();
+            b.seq += 1;
+            (b.state.clone(), b.seq)
+        };
+        post(&v2, &silvr_worker::FromPage::View { view, seq });
+        set_view_attr("data-seq", &seq.to_string());
+        set_view_attr("data-pending", "0");
         show_matrix(&v2);
         schedule_hash(&v2);
     });
     if let Some(w) = web_sys::window() {
         let _ = w.request_animation_frame(cb.unchecked_ref());
+    }
+}
+
+fn set_view_attr(name: &str, value: &str) {
+    if let Some(c) = by_id(&document(), "view") {
+        c.set_attribute(name, value).ok();
     }
 }
 
@@ -389,6 +411,17 @@ fn schedule_hash(v: &Shared) {
 }
 
 fn bounds(b: &Viewer) -> Option<([f64; 3], [f64; 3])> {
+    boxes(b, |l| (l.min, l.max))
+}
+
+fn fit_bounds(b: &Viewer) -> Option<([f64; 3], [f64; 3])> {
+    boxes(b, |l| (l.fit_min, l.fit_max))
+}
+
+fn boxes(
+    b: &Viewer,
+    of: impl Fn(&LayerInfo) -> ([f64; 3], [f64; 3]),
+) -> Option<([f64; 3], [f64; 3])> {
     let visible: Vec<&LayerInfo> = b
         .layers
         .iter()
@@ -400,16 +433,18 @@ fn bounds(b: &Viewer) -> Option<([f64; 3], [f64; 3])> {
         visible
     };
     let first = set.first()?;
-    let (mut lo, mut hi) = (DVec3::from_array(first.min), DVec3::from_array(first.max));
+    let (a, z) = of(first);
+    let (mut lo, mut hi) = (DVec3::from_array(a), DVec3::from_array(z));
     for l in &set {
-        lo = lo.min(DVec3::from_array(l.min));
-        hi = hi.max(DVec3::from_array(l.max));
+        let (a, z) = of(l);
+        lo = lo.min(DVec3::from_array(a));
+        hi = hi.max(DVec3::from_array(z));
     }
     Some((lo.to_array(), hi.to_array()))
 }
 
 fn fit(b: &Viewer) -> Option<Camera> {
-    bounds(b).map(|(lo, hi)| Camera::fit(lo, hi))
+    fit_bounds(b).map(|(lo, hi)| Camera::fit(lo, hi))
 }
 
 /// The camera's view-projection on the canvas, as the worker computes it (for tests and the curious).

@@ -155,8 +155,14 @@ pub enum ToPage {
     },
     /// The filter's outcome for the view in force.
     Filter { counts: studio::FilterCounts },
-    /// A frame was drawn (`ms`: submit to done on the GPU queue).
-    Frame { n: u32, ms: f64, points: u64 },
+    /// A frame was drawn (`ms`: submit to done on the GPU queue) for the view numbered `seq`; the filter
+    /// counts of that view were sent before it.
+    Frame {
+        n: u32,
+        ms: f64,
+        points: u64,
+        seq: u32,
+    },
     /// `frames` frames drawn back to back.
     Bench {
         id: u32,
@@ -190,8 +196,12 @@ pub enum FromPage {
     },
     /// The canvas (its `OffscreenCanvas` travels beside the message) changed size.
     Resize { width: u32, height: u32 },
-    /// Draw this view.
-    View { view: view::ViewState },
+    /// Draw this view; `seq` comes back with the frame that drew it.
+    View {
+        view: view::ViewState,
+        #[serde(default)]
+        seq: u32,
+    },
     /// Fetch a PLY over http(s) and open it as a layer.
     OpenUrl { id: u32, url: String },
     /// The kept points of layer `layer` under `view` as PLY bytes.

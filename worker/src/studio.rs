@@ -54,6 +54,9 @@ pub struct LayerInfo {
     pub stride: u64,
     pub min: [f64; 3],
     pub max: [f64; 3],
+    /// The box "fit to view" frames (1st-99th percentile per axis).
+    pub fit_min: [f64; 3],
+    pub fit_max: [f64; 3],
     pub has_rgb: bool,
     pub scalars: Vec<ScalarInfo>,
     pub gpu_bytes: u64,
@@ -99,6 +102,8 @@ pub fn parse_layer(bytes: &[u8], name: &str, source: &str, index: u32) -> Result
             stride: view.stride as u64,
             min: view.min.to_array(),
             max: view.max.to_array(),
+            fit_min: view.fit_min.to_array(),
+            fit_max: view.fit_max.to_array(),
             has_rgb: view.has_rgb,
             scalars,
             gpu_bytes: 0,
@@ -153,6 +158,8 @@ pub fn parse_cameras(bytes: &[u8], name: &str, source: &str, index: u32) -> Resu
             stride: view.stride as u64,
             min: view.min.to_array(),
             max: view.max.to_array(),
+            fit_min: view.fit_min.to_array(),
+            fit_max: view.fit_max.to_array(),
             has_rgb: true,
             scalars: Vec::new(),
             gpu_bytes: 0,
@@ -190,16 +197,30 @@ impl Layers {
             .filter(move |l| !view.hidden.contains(&l.info.index))
     }
 
-    /// The bounds of the visible layers (all layers when none is visible).
+    /// The bounds of the visible layers (all layers when none is visible): all points, and the box to
+    /// fit to view.
     pub fn bounds(&self, view: &ViewState) -> Option<([f64; 3], [f64; 3])> {
+        self.boxes(view, |l| (l.info.min, l.info.max))
+    }
+
+    pub fn fit_bounds(&self, view: &ViewState) -> Option<([f64; 3], [f64; 3])> {
+        self.boxes(view, |l| (l.info.fit_min, l.info.fit_max))
+    }
+
+    fn boxes(
+        &self,
+        view: &ViewState,
+        of: impl Fn(&Layer) -> ([f64; 3], [f64; 3]),
+    ) -> Option<([f64; 3], [f64; 3])> {
         let mut it: Vec<&Layer> = self.visible(view).collect();
         if it.is_empty() {
             it = self.layers.iter().collect();
         }
         let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
         for l in &it {
-            lo = lo.min(DVec3::from_array(l.info.min));
-            hi = hi.max(DVec3::from_array(l.info.max));
+            let (a, b) = of(l);
+            lo = lo.min(DVec3::from_array(a));
+            hi = hi.max(DVec3::from_array(b));
         }
         (!it.is_empty()).then(|| (lo.to_array(), hi.to_array()))
     }

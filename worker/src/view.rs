@@ -48,7 +48,7 @@ impl Camera {
         let fov = Self::DEFAULT_FOV;
         Self {
             target: ((lo + hi) * 0.5).to_array(),
-            yaw: -135.0,
+            yaw: 225.0,
             pitch: 30.0,
             distance: radius / (0.5 * fov.to_radians()).tan() * 1.1,
             fov,

@@ -32,9 +32,11 @@ struct Studio {
     layers: Layers,
     view: ViewState,
     target: Option<Target>,
-    /// The canvas the page handed over (kept to make a new surface after a device loss).
-    canvas: Option<(web_sys::OffscreenCanvas, u32, u32)>,
+    /// The canvas's size in pixels.
+    size: (u32, u32),
     recovering: bool,
+    /// The page's number of the view in force.
+    seq: u32,
     frames: u32,
     last_counts: Option<crate::studio::FilterCounts>,
 }
@@ -112,8 +114,9 @@ async fn startup(state: Shared) {
         layers: Layers::default(),
         view: ViewState::default(),
         target: None,
-        canvas: None,
+        size: (1, 1),
         recovering: false,
+        seq: 0,
         frames: 0,
         last_counts: None,
     }));
@@ -223,8 +226,12 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
             resize(studio, width, height);
             draw(studio);
         }
-        FromPage::View { view } => {
-            studio.borrow_mut().view = view;
+        FromPage::View { view, seq } => {
+            {
+                let mut s = studio.borrow_mut();
+                s.view = view;
+                s.seq = seq;
+            }
             draw(studio);
             report_counts(studio);
         }
@@ -243,13 +250,15 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
             let studio = studio.clone();
             // The browser reports the loss asynchronously; draw once it has.
             spawn_local(async move {
-                for _ in 0..50 {
+                for _ in 0..20 {
                     sleep_ms(100).await;
                     if studio.borrow().gpu.check_lost().is_err() {
-                        break;
+                        return draw(&studio);
                     }
                 }
-                draw(&studio);
+                // Firefox 153 does not resolve `device.lost` after `destroy()`: recover all the same.
+                log::warn!("the destroyed device was not reported lost within 2 s");
+                recover(&studio, "destroyed (the browser did not report it)".into());
             });
         }
     }
@@ -265,35 +274,34 @@ async fn sleep_ms(ms: i32) {
 /// After a device loss: a new device, the layers uploaded again from the worker's copies, a new surface
 /// on the same canvas. The page is told, and keeps its view.
 fn recover(studio: &Rc<RefCell<Studio>>, why: String) {
-    {
+    let surface = {
         let mut s = studio.borrow_mut();
         if s.recovering {
             return;
         }
         s.recovering = true;
-        s.target = None;
         for l in &mut s.layers.layers {
             l.gpu = None;
         }
-    }
+        s.target.take().map(|t| t.surface)
+    };
     let studio = studio.clone();
     spawn_local(async move {
         match Gpu::new(GpuOptions::default()).await {
             Ok(gpu) => {
-                let canvas = {
+                {
                     let mut s = studio.borrow_mut();
                     s.gpu = gpu;
                     s.recovering = false;
-                    s.canvas.clone()
-                };
+                }
                 post(&view_error(
                     None,
                     &format!(
                         "the GPU device was lost ({why}); the view was re-created on a new device"
                     ),
                 ));
-                if let Some((canvas, w, h)) = canvas {
-                    attach(studio, canvas, w, h).await;
+                if let Some(surface) = surface {
+                    configure_view(&studio, surface).await;
                 }
             }
             Err(e) => {
@@ -319,7 +327,7 @@ fn view_error(id: Option<u32>, message: &str) -> ToPage {
 /// Makes the canvas the view's target: a surface from the engine's own instance, on its device.
 async fn attach(studio: Rc<RefCell<Studio>>, canvas: web_sys::OffscreenCanvas, w: u32, h: u32) {
     let gpu = studio.borrow().gpu.clone();
-    studio.borrow_mut().canvas = Some((canvas.clone(), w, h));
+    studio.borrow_mut().size = (w, h);
     let surface = match gpu
         .instance
         .create_surface(wgpu::SurfaceTarget::OffscreenCanvas(canvas))
@@ -332,6 +340,17 @@ async fn attach(studio: Rc<RefCell<Studio>>, canvas: web_sys::OffscreenCanvas, w
             ));
             return;
         }
+    };
+    configure_view(&studio, surface).await;
+}
+
+/// Configures `surface` (the canvas's) for the studio's device and builds what drawing into it needs.
+/// After a device loss it runs again with the same surface: a canvas gives its context only once (Firefox
+/// refuses a second `getContext`), and the context accepts the new device.
+async fn configure_view(studio: &Rc<RefCell<Studio>>, surface: wgpu::Surface<'static>) {
+    let (gpu, (w, h)) = {
+        let s = studio.borrow();
+        (s.gpu.clone(), s.size)
     };
     let caps = surface.get_capabilities(&gpu.adapter);
     // Colours are written as encoded (sRGB values in a non-sRGB format), as the canvas shows them.
@@ -376,9 +395,9 @@ async fn attach(studio: Rc<RefCell<Studio>>, canvas: web_sys::OffscreenCanvas, w
         renderer,
         depth,
     });
-    // Layers opened before the canvas came get their buffers now.
-    upload_pending(&studio);
-    draw(&studio);
+    // Layers opened before the canvas came (or lost with the last device) get their buffers now.
+    upload_pending(studio);
+    draw(studio);
 }
 
 fn depth_view(gpu: &Gpu, w: u32, h: u32) -> wgpu::TextureView {
@@ -405,9 +424,7 @@ fn resize(studio: &Rc<RefCell<Studio>>, width: u32, height: u32) {
     let gpu = s.gpu.clone();
     let max = gpu.device.limits().max_texture_dimension_2d;
     let (w, h) = (width.clamp(1, max), height.clamp(1, max));
-    if let Some(c) = s.canvas.as_mut() {
-        (c.1, c.2) = (w, h);
-    }
+    s.size = (w, h);
     if let Some(t) = s.target.as_mut() {
         if (t.config.width, t.config.height) != (w, h) {
             t.config.width = w;
@@ -446,7 +463,11 @@ fn upload_pending(studio: &Rc<RefCell<Studio>>) {
 fn draw(studio: &Rc<RefCell<Studio>>) {
     let lost = studio.borrow().gpu.check_lost().err();
     if let Some(e) = lost {
-        return recover(studio, e.to_string());
+        let why = match e {
+            silvr_core::gpu::GpuError::DeviceLost { reason, .. } => reason,
+            other => other.to_string(),
+        };
+        return recover(studio, why);
     }
     let mut s = studio.borrow_mut();
     let Some(t) = s.target.as_ref() else { return };
@@ -470,7 +491,10 @@ fn draw(studio: &Rc<RefCell<Studio>>) {
         * (glam::DVec3::from_array(hi) - glam::DVec3::from_array(lo))
             .length()
             .max(1e-3);
-    let camera = s.view.camera.unwrap_or_else(|| Camera::fit(lo, hi));
+    let camera = s.view.camera.unwrap_or_else(|| {
+        let (a, b) = s.layers.fit_bounds(&s.view).unwrap_or((lo, hi));
+        Camera::fit(a, b)
+    });
     let frame = frame_for(&s.view, camera, radius, (w, h));
     let draws = s.layers.draws(&s.view);
     let points: u64 = draws.iter().map(|d| d.layer.points() as u64).sum();
@@ -480,12 +504,13 @@ fn draw(studio: &Rc<RefCell<Studio>>) {
     drop(draws);
     s.gpu.queue.present(texture);
     s.frames += 1;
-    let n = s.frames;
+    let (n, seq) = (s.frames, s.seq);
     s.gpu.queue.on_submitted_work_done(move || {
         post(&ToPage::Frame {
             n,
             ms: js_sys::Date::now() - start,
             points,
+            seq,
         })
     });
 }
@@ -689,7 +714,13 @@ fn add_layer(studio: &Rc<RefCell<Studio>>, id: u32, bytes: &[u8], name: &str, so
                 s.layers.layers.sort_by_key(|l| l.info.index);
             }
             upload_pending(studio);
-            let info = studio.borrow().layers.layers.last().map(|l| l.info.clone());
+            let info = studio
+                .borrow()
+                .layers
+                .layers
+                .iter()
+                .find(|l| l.info.index == index)
+                .map(|l| l.info.clone());
             if let Some(layer) = info {
                 post(&ToPage::Layer { id, layer });
             }
