@@ -2,7 +2,7 @@
 // a hardware GPU where the browser has one), for BENCHMARKS.md:
 //
 //   PATH="$PWD/web/node_modules/.bin:$PATH" trunk build --release
-//   node scripts/bench-studio.mjs [POINTS ...]        (default: 1000000 10000000)
+//   node scripts/bench-studio.mjs [POINTS ...]        (default: 1000000 10000000; FRAMES=10)
 //
 // Each cloud (a 200 m street of ground, facades and noise, with RGB and log_std_combined) is generated in
 // memory and served on 127.0.0.1; the studio opens it by `?url=`, then draws 10 frames back to back
@@ -52,10 +52,11 @@ function cloud(n) {
 const MIME = { '.html': 'text/html', '.js': 'text/javascript', '.wasm': 'application/wasm', '.css': 'text/css' };
 let data = null;
 const server = createServer((req, res) => {
-  const path = decodeURIComponent(new URL(req.url, 'http://x').pathname);
+  const raw = decodeURIComponent(new URL(req.url, 'http://x').pathname);
+  const path = raw === '/' ? '/index.html' : raw;
   let body = path === '/data/cloud.ply' ? data : null;
   if (!body) {
-    const file = normalize(join(DIST, path === '/' ? 'index.html' : path));
+    const file = normalize(join(DIST, path));
     if (file.startsWith(DIST + sep) && existsSync(file)) body = readFileSync(file);
   }
   if (!body) return res.writeHead(404).end();
@@ -80,7 +81,8 @@ try {
     const err = await page.evaluate(() => document.querySelector('#view-messages')?.textContent || '');
     if (err) throw new Error(`${n} points: ${err}`);
     await page.waitForFunction(() => Number(document.querySelector('#view').dataset.frames || 0) >= 1, null, { timeout: 1_800_000 });
-    await page.evaluate(() => document.querySelector('#view').dispatchEvent(new CustomEvent('silvr-bench', { detail: 10 })));
+    const frames = process.env.FRAMES || '10';
+    await page.evaluate((frames) => document.querySelector('#view').dispatchEvent(new CustomEvent('silvr-bench', { detail: Number(frames) })), frames);
     await page.waitForFunction(() => document.querySelector('#view').dataset.benchMs, null, { timeout: 1_800_000 });
     const r = await page.evaluate(() => {
       const v = document.querySelector('#view').dataset;
