@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
-# SiLVR Studio's browser tests, in headless Chromium with SwiftShader WebGPU (shared/reference/toolchain.md):
-#   1. npm ci --prefix web          (binaryen 132 for trunk's wasm-opt, playwright-core), when not up to date
+# SiLVR Studio's browser tests, in headless Chromium with SwiftShader WebGPU (shared/reference/toolchain.md) and
+# headless Firefox ESR on lavapipe (shared/reference/browser_testing.md):
+#   1. npm ci --prefix web          (binaryen 132 for trunk's wasm-opt, playwright-core, puppeteer-core)
 #   2. trunk build --release        (the studio: page + worker → dist/)
 #   3. wasm-bindgen-test            (the engine's GPU code in a dedicated Worker: worker/tests/browser_gpu.rs)
 #   4. node --test tests/browser/   (the studio page end to end: adapter, kernel check, drag and drop; the
 #                                    view in Chromium and Firefox on the ci demo's clouds, see viewer.mjs)
-# Needs trunk 0.21.14, wasm-bindgen-cli 0.2.130, chromium and chromedriver (scripts/setup.sh installs them;
+# Needs trunk 0.21.14, wasm-bindgen-cli 0.2.130, chromium, chromedriver, firefox-esr ≥ 141 (scripts/setup.sh installs them;
 # this script installs nothing but web/node_modules). Exits non-zero on the first failure.
 set -euo pipefail
 cd "$(dirname "$0")/.."
