@@ -18,6 +18,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
+// The link's encoding is the studio's own (one codec for the links serve prints and the page reads).
+use silvr_worker::view::{decode_bytes, encode};
 
 /// Largest request head (request line + headers) accepted; larger ones get 431.
 const MAX_HEAD_BYTES: usize = 16 * 1024;
@@ -278,7 +280,7 @@ fn url_host(ip: IpAddr) -> String {
 fn studio_link(host: &str, port: u16, plys: &[PathBuf]) -> String {
     let srcs: Vec<String> = plys
         .iter()
-        .map(|rel| format!("src={}", percent_encode(&data_url(host, port, rel))))
+        .map(|rel| format!("src={}", encode(&data_url(host, port, rel))))
         .collect();
     if srcs.is_empty() {
         format!("http://{host}:{port}/")
@@ -291,22 +293,9 @@ fn studio_link(host: &str, port: u16, plys: &[PathBuf]) -> String {
 fn data_url(host: &str, port: u16, rel: &Path) -> String {
     let segments: Vec<String> = rel
         .components()
-        .map(|c| percent_encode(&c.as_os_str().to_string_lossy()))
+        .map(|c| encode(&c.as_os_str().to_string_lossy()))
         .collect();
     format!("http://{host}:{port}/data/{}", segments.join("/"))
-}
-
-/// RFC 3986 percent-encoding: the unreserved set (A-Z a-z 0-9 - . _ ~) kept, every other byte `%XX`.
-fn percent_encode(s: &str) -> String {
-    let mut out = String::with_capacity(s.len());
-    for b in s.bytes() {
-        if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {
-            out.push(b as char);
-        } else {
-            out.push_str(&format!("%{b:02X}"));
-        }
-    }
-    out
 }
 
 /// `.ply` files under `root` (at most [`PLY_SEARCH_DEPTH`] path components deep), relative to it, sorted
@@ -687,7 +676,7 @@ fn request_path(target: &str) -> Result<Vec<String>, u16> {
     let Some(path) = path.strip_prefix('/') else {
         return Err(400);
     };
-    let decoded = percent_decode(path).ok_or(400u16)?;
+    let decoded = decode_bytes(path).ok_or(400u16)?;
     let decoded = String::from_utf8(decoded).map_err(|_| 400u16)?;
     if decoded.contains('\0') {
         return Err(400);
@@ -716,28 +705,6 @@ fn request_path(target: &str) -> Result<Vec<String>, u16> {
         }
     }
     Ok(segments)
-}
-
-/// `%XX` → byte; `None` for a `%` without two hex digits.
-fn percent_decode(s: &str) -> Option<Vec<u8>> {
-    let bytes = s.as_bytes();
-    let mut out = Vec::with_capacity(bytes.len());
-    let mut i = 0;
-    while i < bytes.len() {
-        if bytes[i] == b'%' {
-            let hex = bytes.get(i + 1..i + 3)?;
-            let hex = std::str::from_utf8(hex).ok()?;
-            if !hex.bytes().all(|b| b.is_ascii_hexdigit()) {
-                return None;
-            }
-            out.push(u8::from_str_radix(hex, 16).ok()?);
-            i += 3;
-        } else {
-            out.push(bytes[i]);
-            i += 1;
-        }
-    }
-    Some(out)
 }
 
 /// The canonical file `segments` names under `root` (a folder's `index.html`), refused (403) when it
@@ -1049,15 +1016,15 @@ mod tests {
 
     #[test]
     fn percent_encoding_keeps_only_the_unreserved_set() {
-        assert_eq!(percent_encode("AZaz09-._~"), "AZaz09-._~");
+        assert_eq!(encode("AZaz09-._~"), "AZaz09-._~");
         assert_eq!(
-            percent_encode("http://127.0.0.1:8080/data/silvr/points.ply"),
+            encode("http://127.0.0.1:8080/data/silvr/points.ply"),
             "http%3A%2F%2F127.0.0.1%3A8080%2Fdata%2Fsilvr%2Fpoints.ply"
         );
-        assert_eq!(percent_encode("a b&c=d#e%"), "a%20b%26c%3Dd%23e%25");
-        assert_eq!(percent_encode("é"), "%C3%A9");
+        assert_eq!(encode("a b&c=d#e%"), "a%20b%26c%3Dd%23e%25");
+        assert_eq!(encode("é"), "%C3%A9");
         assert_eq!(
-            percent_decode(&percent_encode("a b/é%")).unwrap(),
+            decode_bytes(&encode("a b/é%")).unwrap(),
             "a b/é%".as_bytes()
         );
     }

@@ -81,36 +81,43 @@ pub fn parse_layer(bytes: &[u8], name: &str, source: &str, index: u32) -> Result
     if view.is_empty() {
         return Err(format!("{name}: no point has finite coordinates"));
     }
-    let scalars = view
-        .scalars
-        .iter()
-        .map(|s| ScalarInfo {
-            name: s.name.clone(),
-            min: s.quantile(0.0),
-            max: s.quantile(1.0),
-            p02: s.quantile(0.02),
-            p98: s.quantile(0.98),
-        })
-        .collect();
-    Ok(Layer {
-        info: LayerInfo {
-            index,
-            name: name.to_string(),
-            source: source.to_string(),
-            points: view.len() as u64,
-            total: view.total as u64,
-            stride: view.stride as u64,
-            min: view.min.to_array(),
-            max: view.max.to_array(),
-            fit_min: view.fit_min.to_array(),
-            fit_max: view.fit_max.to_array(),
-            has_rgb: view.has_rgb,
-            scalars,
-            gpu_bytes: 0,
-        },
-        cloud: view,
-        gpu: None,
-    })
+    Ok(Layer::new(view, name.to_string(), source, index))
+}
+
+impl Layer {
+    /// A layer of `view`, described for the page.
+    fn new(view: ViewCloud, name: String, source: &str, index: u32) -> Self {
+        let scalars = view
+            .scalars
+            .iter()
+            .map(|s| ScalarInfo {
+                name: s.name.clone(),
+                min: s.quantile(0.0),
+                max: s.quantile(1.0),
+                p02: s.quantile(0.02),
+                p98: s.quantile(0.98),
+            })
+            .collect();
+        Layer {
+            info: LayerInfo {
+                index,
+                name,
+                source: source.to_string(),
+                points: view.len() as u64,
+                total: view.total as u64,
+                stride: view.stride as u64,
+                min: view.min.to_array(),
+                max: view.max.to_array(),
+                fit_min: view.fit_min.to_array(),
+                fit_max: view.fit_max.to_array(),
+                has_rgb: view.has_rgb,
+                scalars,
+                gpu_bytes: 0,
+            },
+            cloud: view,
+            gpu: None,
+        }
+    }
 }
 
 /// Most camera frames a `transforms.json` may list (a day of driving at 10 Hz × 3 cameras is ~1 M).
@@ -148,25 +155,8 @@ pub fn parse_cameras(bytes: &[u8], name: &str, source: &str, index: u32) -> Resu
         }
     }
     let view = ViewCloud::from_cloud(&cloud, ViewCloud::MAX_POINTS);
-    Ok(Layer {
-        info: LayerInfo {
-            index,
-            name: format!("{name} — {} cameras", frames.len()),
-            source: source.to_string(),
-            points: view.len() as u64,
-            total: view.total as u64,
-            stride: view.stride as u64,
-            min: view.min.to_array(),
-            max: view.max.to_array(),
-            fit_min: view.fit_min.to_array(),
-            fit_max: view.fit_max.to_array(),
-            has_rgb: true,
-            scalars: Vec::new(),
-            gpu_bytes: 0,
-        },
-        cloud: view,
-        gpu: None,
-    })
+    let name = format!("{name} — {} cameras", frames.len());
+    Ok(Layer::new(view, name, source, index))
 }
 
 /// The filter's outcome over the visible layers.

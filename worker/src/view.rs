@@ -203,22 +203,28 @@ pub fn encode(s: &str) -> String {
     out
 }
 
-/// Percent-decoding; `None` on a bad escape or bytes that are not UTF-8.
-pub fn decode(s: &str) -> Option<String> {
+/// Percent-decoding to bytes; `None` on a bad escape (`%` not followed by two hex digits).
+pub fn decode_bytes(s: &str) -> Option<Vec<u8>> {
     let b = s.as_bytes();
     let mut out = Vec::with_capacity(b.len());
     let mut i = 0;
     while i < b.len() {
         if b[i] == b'%' {
-            let hex = s.get(i + 1..i + 3)?;
-            out.push(u8::from_str_radix(hex, 16).ok()?);
+            let hex = b.get(i + 1..i + 3)?;
+            let digit = |c: u8| (c as char).to_digit(16);
+            out.push((digit(hex[0])? * 16 + digit(hex[1])?) as u8);
             i += 3;
         } else {
             out.push(b[i]);
             i += 1;
         }
     }
-    String::from_utf8(out).ok()
+    Some(out)
+}
+
+/// Percent-decoding; `None` on a bad escape or bytes that are not UTF-8.
+pub fn decode(s: &str) -> Option<String> {
+    String::from_utf8(decode_bytes(s)?).ok()
 }
 
 fn numbers<const N: usize>(s: &str) -> Option<[f64; N]> {
@@ -501,6 +507,9 @@ mod tests {
         assert_eq!(decode("a%20b%2Fc").as_deref(), Some("a b/c"));
         assert_eq!(decode("%4"), None);
         assert_eq!(decode("%FF"), None);
+        assert_eq!(decode("%+1"), None);
+        assert_eq!(decode_bytes("%FF%e9"), Some(vec![0xFF, 0xE9]));
+        assert_eq!(decode("é%C3%A9").as_deref(), Some("éé"));
     }
 
     #[test]
