@@ -60,7 +60,9 @@ fn vs(
     out.corner = corner;
     out.colour = vec3<f32>(0.0);
     // Filtered out: outside the clip volume (every corner, so the whole quad is clipped).
-    if (view.mode.y != 0u && !(filter_value <= view.range.z)) {
+    // NaN is never kept (tested by its bits: a compiler may assume comparisons never see NaN).
+    let nan = (bitcast<u32>(filter_value) & 0x7fffffffu) > 0x7f800000u;
+    if (view.mode.y != 0u && (nan || !(filter_value <= view.range.z))) {
         out.clip = vec4<f32>(2.0, 2.0, 2.0, 1.0);
         return out;
     }

@@ -347,6 +347,8 @@ struct Cors {
     origins: Vec<String>,
     /// `--allow-origin '*'`: any website.
     any: bool,
+    /// `Host` values a loopback server answers (`None`: any).
+    hosts: Option<Vec<String>>,
 }
 
 impl Cors {
@@ -379,7 +381,42 @@ impl Cors {
                 bail!("--allow-origin {o}: expected an origin like https://studio.example[:port] or *");
             }
         }
-        Ok(Cors { origins, any })
+        // DNS rebinding: a website whose name is made to resolve to 127.0.0.1 would be same-origin with a
+        // loopback server and read DIR without any CORS check. A loopback server answers only requests
+        // addressed to its own names; one bound to a network address (the user was warned) answers all.
+        let hosts = (bind.is_loopback() || bind.is_unspecified()).then(|| {
+            let mut h: Vec<String> = ["localhost", "127.0.0.1", "[::1]"]
+                .iter()
+                .map(|n| n.to_string())
+                .chain([url_host(bind)])
+                .collect();
+            // `--allow-origin` names a studio elsewhere, not a name for this server; it stays out.
+            h.dedup();
+            h.iter()
+                .flat_map(|n| {
+                    let with_port = format!("{n}:{port}");
+                    if port == 80 {
+                        vec![with_port, n.clone()]
+                    } else {
+                        vec![with_port]
+                    }
+                })
+                .collect()
+        });
+        Ok(Cors {
+            origins,
+            any,
+            hosts,
+        })
+    }
+
+    /// Whether a request with this `Host` header is addressed to this server (see `hosts`). Requests
+    /// without one (HTTP/1.0 tools) are; browsers always send it.
+    fn host_ok(&self, host: Option<&str>) -> bool {
+        match (&self.hosts, host) {
+            (Some(names), Some(h)) => names.iter().any(|n| n.eq_ignore_ascii_case(h.trim())),
+            _ => true,
+        }
     }
 
     /// `Access-Control-Allow-Origin` for a request with this `Origin` header, if it may read the answer.
@@ -477,6 +514,14 @@ impl Server {
     }
 
     fn respond(&self, req: &Request) -> Response {
+        if !self.cors.host_ok(req.header("host")) {
+            return Response::text(
+                421,
+                "421 Misdirected Request: this loopback server answers only requests addressed to \
+                 localhost, 127.0.0.1 or [::1] (DNS rebinding protection)\n"
+                    .to_string(),
+            );
+        }
         let allow = self.cors.allow(req.header("origin"));
         let mut resp = match req.method.as_str() {
             "GET" | "HEAD" => self.get(req),
@@ -829,6 +874,7 @@ fn reason(status: u16) -> &'static str {
         405 => "Method Not Allowed",
         408 => "Request Timeout",
         416 => "Range Not Satisfiable",
+        421 => "Misdirected Request",
         431 => "Request Header Fields Too Large",
         503 => "Service Unavailable",
         505 => "HTTP Version Not Supported",
@@ -1091,7 +1137,14 @@ mod tests {
 
         // A LAN bind: its own address only, not the loopback names of other local servers' pages.
         let lan: IpAddr = "192.168.1.5".parse().unwrap();
+        // DNS rebinding: a loopback server refuses requests addressed to other names.
+        let local = Cors::new(LOCAL, 8080, &[]).unwrap();
+        assert!(local.host_ok(Some("127.0.0.1:8080")) && local.host_ok(Some("LOCALHOST:8080")));
+        assert!(local.host_ok(Some("[::1]:8080")) && local.host_ok(None));
+        assert!(!local.host_ok(Some("evil.example:8080")));
+        assert!(!local.host_ok(Some("127.0.0.1:9999")));
         let cors = Cors::new(lan, 9000, &[]).unwrap();
+        assert!(cors.host_ok(Some("192.168.1.5:9000")) && cors.host_ok(Some("anything:1")));
         assert!(cors.allow(Some("http://192.168.1.5:9000")).is_some());
         assert_eq!(cors.allow(Some("http://localhost:9000")), None);
         assert!(Cors::new(LOCAL, 8080, &["studio.example".into()]).is_err());

@@ -79,7 +79,9 @@ impl Server {
         ))
     }
 
+    /// Sends `request`, its `Host: x` addressed to this server (a loopback server refuses other names).
     fn send(&self, request: &str) -> Reply {
+        let request = request.replace("Host: x\r\n", &format!("Host: 127.0.0.1:{}\r\n", self.port));
         send_bytes(self.port, request.as_bytes())
     }
 }
@@ -308,6 +310,16 @@ fn serve_hands_out_the_studio_and_the_data_and_nothing_else() {
             Some("Content-Length, Content-Range, Accept-Ranges")
         );
     }
+    // DNS rebinding: a request addressed to another name is refused, whatever its origin.
+    let r = send_bytes(
+        server.port,
+        format!(
+            "GET /data/sub/x.ply HTTP/1.1\r\nHost: evil.example:{}\r\n\r\n",
+            server.port
+        )
+        .as_bytes(),
+    );
+    assert_eq!(r.status, 421);
     let r = server.get_with("/data/sub/x.ply", "Origin: http://evil.example");
     assert_eq!(r.header("access-control-allow-origin"), None);
     let preflight = |origin: &str| {

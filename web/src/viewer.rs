@@ -42,6 +42,8 @@ struct Viewer {
     hash_pending: bool,
     drag: Option<(f64, f64, bool)>,
     frames: u32,
+    /// The canvas size the worker was last told (device pixels).
+    size: (u32, u32),
     /// Views sent so far (`#view[data-seq]`); frames report the one they drew (`data-drawn-seq`).
     seq: u32,
     /// Messages held until the worker listens: a worker's wasm sets its message handler only after it
@@ -90,12 +92,14 @@ pub fn start(worker: &Worker) {
         hash_pending: false,
         drag: None,
         frames: 0,
+        size: (0, 0),
         seq: 0,
         outbox: Some(Vec::new()),
     }));
     VIEWER.with(|cell| *cell.borrow_mut() = Some(v.clone()));
     if let Some(canvas) = by_id(&doc, "view").and_then(|e| e.dyn_into::<HtmlCanvasElement>().ok()) {
         let (w, h) = canvas_size(&canvas);
+        v.borrow_mut().size = (w, h);
         match canvas.transfer_control_to_offscreen() {
             Ok(off) => {
                 let msg = js_sys::Object::new();
@@ -875,8 +879,13 @@ fn wire_controls(v: &Shared) {
                 let mut b = v.borrow_mut();
                 let field = b.state.filter.clone();
                 if let Some((lo, hi)) = field_range(&b, &field) {
-                    let t = lo as f64 + (hi - lo) as f64 * (pos / SLIDER_STEPS);
-                    b.state.threshold = Some(t as f32);
+                    // The top of the slider is exactly the largest value (keep everything finite).
+                    let t = if pos >= SLIDER_STEPS {
+                        hi
+                    } else {
+                        (lo as f64 + (hi as f64 - lo as f64) * (pos / SLIDER_STEPS)) as f32
+                    };
+                    b.state.threshold = Some(t);
                 }
             }
             show_counts(&v);
@@ -932,18 +941,36 @@ fn wire_controls(v: &Shared) {
             }
         });
     }
-    // The canvas follows the layout's size.
-    if let Some(w) = web_sys::window() {
+    // The canvas follows its laid-out size (a scrollbar, a reflow of the card, the window, the zoom).
+    let resized = {
         let v = v.clone();
-        listen(&w, "resize", move |_: Event| {
-            if let Some(c) =
+        move || {
+            let Some(c) =
                 by_id(&document(), "view").and_then(|e| e.dyn_into::<HtmlCanvasElement>().ok())
-            {
-                let (width, height) = canvas_size(&c);
-                post(&v, &silvr_worker::FromPage::Resize { width, height });
-                schedule(&v);
+            else {
+                return;
+            };
+            let (width, height) = canvas_size(&c);
+            if v.borrow().size == (width, height) {
+                return;
             }
-        });
+            v.borrow_mut().size = (width, height);
+            post(&v, &silvr_worker::FromPage::Resize { width, height });
+            schedule(&v);
+        }
+    };
+    if let Some(c) = by_id(&document(), "view") {
+        let resized = resized.clone();
+        let cb = Closure::<dyn FnMut(JsValue)>::new(move |_: JsValue| resized());
+        if let Ok(ro) = web_sys::ResizeObserver::new(cb.as_ref().unchecked_ref()) {
+            ro.observe(&c);
+            // Page-lifetime observer.
+            std::mem::forget(ro);
+        }
+        cb.forget();
+    }
+    if let Some(w) = web_sys::window() {
+        listen(&w, "resize", move |_: Event| resized());
     }
 }
 

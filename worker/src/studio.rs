@@ -5,7 +5,9 @@ use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use silvr_core::pointcloud::{read_ply_bytes, write_ply_bytes};
 use silvr_core::uncertainty::filter::default_threshold;
-use silvr_core::viewer::{Colouring, GpuLayer, LayerDraw, ViewCloud};
+use silvr_core::viewer::{
+    Colouring, GpuLayer, LayerDraw, ViewCloud, ERROR_FIELD, UNCERTAINTY_FIELDS,
+};
 
 use crate::view::{Colour, ViewState};
 
@@ -72,7 +74,12 @@ pub struct Layer {
 /// Parses a PLY file into a layer (the core's reader: one reader for native and browser). Errors name
 /// the source and the problem.
 pub fn parse_layer(bytes: &[u8], name: &str, source: &str, index: u32) -> Result<Layer, String> {
-    let cloud = read_ply_bytes(bytes, name).map_err(|e| format!("{name}: {e}"))?;
+    let mut cloud = read_ply_bytes(bytes, name).map_err(|e| format!("{name}: {e}"))?;
+    // Only what the studio colours and filters by: a splat file's sixty properties would each cost a
+    // sorted copy and a GPU buffer.
+    cloud
+        .scalars
+        .retain(|(n, _)| UNCERTAINTY_FIELDS.contains(&n.as_str()) || n == ERROR_FIELD);
     if cloud.is_empty() {
         return Err(format!("{name}: the file holds no points"));
     }
@@ -140,10 +147,11 @@ pub fn parse_cameras(bytes: &[u8], name: &str, source: &str, index: u32) -> Resu
             frames.len()
         ));
     }
+    let val: std::collections::HashSet<&str> = val.iter().map(String::as_str).collect();
     let mut cloud = silvr_core::pointcloud::PointCloud::new();
     for f in &frames {
         let (_, pose) = f.camera(path).map_err(|e| e.to_string())?;
-        let held_out = val.iter().any(|v| v == &f.file_path);
+        let held_out = val.contains(f.file_path.as_str());
         let colour = if held_out {
             [240, 150, 30]
         } else {
@@ -215,7 +223,8 @@ impl Layers {
         (!it.is_empty()).then(|| (lo.to_array(), hi.to_array()))
     }
 
-    /// The default threshold of `field` over the visible layers.
+    /// The default threshold of `field` over the visible layers (`None` when no value is finite: the
+    /// rule then keeps every non-NaN point, as the native one does with its infinite threshold).
     pub fn default_threshold(&self, view: &ViewState, field: &str) -> Option<f32> {
         let values: Vec<f32> = self
             .visible(view)
@@ -226,10 +235,12 @@ impl Layers {
         t.is_finite().then_some(t)
     }
 
-    /// The threshold the view applies: its own, or the default rule's.
-    pub fn threshold(&self, view: &ViewState) -> Option<f32> {
+    /// The threshold the view applies: its own, or the default rule's (infinite when no value is finite,
+    /// which still drops NaN, as `points_filtered.ply` does).
+    pub fn threshold(&self, view: &ViewState) -> f32 {
         view.threshold
             .or_else(|| self.default_threshold(view, &view.filter))
+            .unwrap_or(f32::INFINITY)
     }
 
     pub fn counts(&self, view: &ViewState) -> FilterCounts {
@@ -238,11 +249,10 @@ impl Layers {
         let (mut kept, mut total) = (0, 0);
         for l in &self.layers {
             let hidden = view.hidden.contains(&l.info.index);
-            let c = match (l.cloud.scalar(&view.filter), threshold) {
-                (Some(s), Some(t)) => Some((s.kept(t) as u64, l.cloud.len() as u64)),
-                (Some(_), None) => Some((l.cloud.len() as u64, l.cloud.len() as u64)),
-                (None, _) => None,
-            };
+            let c = l
+                .cloud
+                .scalar(&view.filter)
+                .map(|s| (s.kept(threshold) as u64, l.cloud.len() as u64));
             if let (Some((k, n)), false) = (c, hidden) {
                 kept += k;
                 total += n;
@@ -251,7 +261,7 @@ impl Layers {
         }
         FilterCounts {
             field: view.filter.clone(),
-            threshold,
+            threshold: threshold.is_finite().then_some(threshold),
             default_threshold: self.default_threshold(view, &view.filter),
             per_layer,
             kept,
@@ -279,13 +289,12 @@ impl Layers {
                         None => Colouring::Solid([0.45, 0.45, 0.45]),
                     },
                 };
-                let filter = threshold.and_then(|t| {
-                    l.cloud
-                        .scalars
-                        .iter()
-                        .position(|s| s.name == view.filter)
-                        .map(|i| (i, t))
-                });
+                let filter = l
+                    .cloud
+                    .scalars
+                    .iter()
+                    .position(|s| s.name == view.filter)
+                    .map(|i| (i, threshold));
                 Some(LayerDraw {
                     layer,
                     colouring,
@@ -316,9 +325,14 @@ impl Layers {
             .iter()
             .find(|l| l.info.index == index)
             .ok_or_else(|| format!("there is no layer {index}"))?;
-        let threshold = self
-            .threshold(view)
-            .ok_or_else(|| format!("{}: no finite {} to filter by", l.info.name, view.filter))?;
+        if l.info.stride > 1 {
+            return Err(format!(
+                "{}: the studio holds every {}th point of this file, so its filtered download would not \
+                 be the file's; filter it natively (silvr uncertainty) instead",
+                l.info.name, l.info.stride
+            ));
+        }
+        let threshold = self.threshold(view);
         let cloud = l
             .cloud
             .filtered(&view.filter, threshold)
@@ -372,6 +386,25 @@ mod tests {
             ..ViewState::default()
         };
         assert_eq!(layers.counts(&hidden).total, 0);
+    }
+
+    /// No finite value: the native rule's threshold is infinite and every NaN is still dropped.
+    #[test]
+    fn a_field_without_finite_values_keeps_no_nan() {
+        let mut c = PointCloud::new();
+        for i in 0..10 {
+            c.push(DVec3::new(i as f64, 0.0, 0.0));
+        }
+        let mut v = vec![f32::NAN; 10];
+        v[3] = f32::INFINITY;
+        c.set_scalar("log_std_combined", v);
+        c.set_scalar("f_rest_0", vec![1.0; 10]);
+        let l = parse_layer(&write_ply_bytes(&c).unwrap(), "n.ply", "", 0).unwrap();
+        // Properties the studio does not use are not kept.
+        assert_eq!(l.cloud.scalars.len(), 1);
+        let layers = Layers { layers: vec![l] };
+        let c = layers.counts(&ViewState::default());
+        assert_eq!((c.kept, c.total, c.threshold), (1, 10, None));
     }
 
     #[test]

@@ -34,6 +34,9 @@ struct Studio {
     target: Option<Target>,
     /// The canvas's size in pixels.
     size: (u32, u32),
+    /// The canvas's surface while no device can draw into it (a recovery that failed): a canvas gives
+    /// its context only once, so it is kept for the next attempt.
+    spare: Option<wgpu::Surface<'static>>,
     recovering: bool,
     /// The page's number of the view in force.
     seq: u32,
@@ -115,6 +118,7 @@ async fn startup(state: Shared) {
         view: ViewState::default(),
         target: None,
         size: (1, 1),
+        spare: None,
         recovering: false,
         seq: 0,
         frames: 0,
@@ -283,7 +287,8 @@ fn recover(studio: &Rc<RefCell<Studio>>, why: String) {
         for l in &mut s.layers.layers {
             l.gpu = None;
         }
-        s.target.take().map(|t| t.surface)
+        let spare = s.spare.take();
+        s.target.take().map(|t| t.surface).or(spare)
     };
     let studio = studio.clone();
     spawn_local(async move {
@@ -305,7 +310,11 @@ fn recover(studio: &Rc<RefCell<Studio>>, why: String) {
                 }
             }
             Err(e) => {
-                studio.borrow_mut().recovering = false;
+                {
+                    let mut s = studio.borrow_mut();
+                    s.recovering = false;
+                    s.spare = surface;
+                }
                 post(&view_error(
                     None,
                     &format!("the GPU device was lost ({why}) and no new one could be opened: {e}"),
@@ -550,7 +559,9 @@ async fn read_stream(
     source: &str,
 ) -> Result<Vec<u8>, String> {
     let reader: web_sys::ReadableStreamDefaultReader = stream.get_reader().unchecked_into();
-    let cap = total.unwrap_or(0.0).clamp(0.0, MAX_FILE_BYTES as f64) as usize;
+    // Reserve what the server announced, but at most 64 MiB up front: several sources that each claim
+    // 1.5 GiB must not exhaust the wasm heap before a byte arrives.
+    let cap = total.unwrap_or(0.0).clamp(0.0, (64u64 << 20) as f64) as usize;
     let mut out = Vec::with_capacity(cap);
     let mut reported = 0usize;
     loop {
@@ -572,6 +583,8 @@ async fn read_stream(
             ));
         }
         let at = out.len();
+        out.try_reserve(n)
+            .map_err(|_| "the worker ran out of memory while reading it".to_string())?;
         out.resize(at + n, 0);
         chunk.copy_to(&mut out[at..]);
         if out.len() - reported >= 4 << 20 {
