@@ -42,6 +42,8 @@ struct Viewer {
     hash_pending: bool,
     drag: Option<(f64, f64, bool)>,
     frames: u32,
+    /// The camera was fitted by the studio, not set by a link or the user.
+    auto_camera: bool,
     /// The canvas size the worker was last told (device pixels).
     size: (u32, u32),
     /// Views sent so far (`#view[data-seq]`); frames report the one they drew (`data-drawn-seq`).
@@ -92,6 +94,7 @@ pub fn start(worker: &Worker) {
         hash_pending: false,
         drag: None,
         frames: 0,
+        auto_camera: false,
         size: (0, 0),
         seq: 0,
         outbox: Some(Vec::new()),
@@ -270,8 +273,11 @@ pub fn on_layer(layer: LayerInfo) {
         b.layers.retain(|l| l.index != layer.index);
         b.layers.push(layer.clone());
         b.layers.sort_by_key(|l| l.index);
-        if b.state.camera.is_none() {
+        // Until the user moves it (or a link set it), the camera frames everything open, whichever
+        // file arrived first.
+        if b.state.camera.is_none() || b.auto_camera {
             b.state.camera = fit(&b);
+            b.auto_camera = true;
         }
     }
     if layer.stride > 1 {
@@ -1030,7 +1036,9 @@ fn wire_camera(v: &Shared, canvas: &HtmlCanvasElement) {
             let _ = c.set_pointer_capture(ev.pointer_id());
             let _ = c.focus();
             let pan = ev.shift_key() || ev.button() == 2 || ev.button() == 1;
-            v.borrow_mut().drag = Some((ev.client_x() as f64, ev.client_y() as f64, pan));
+            let mut b = v.borrow_mut();
+            b.drag = Some((ev.client_x() as f64, ev.client_y() as f64, pan));
+            b.auto_camera = false;
         });
     }
     {
@@ -1095,6 +1103,7 @@ fn wire_camera(v: &Shared, canvas: &HtmlCanvasElement) {
         let v = v.clone();
         listen(canvas, "wheel", move |ev: WheelEvent| {
             ev.prevent_default();
+            v.borrow_mut().auto_camera = false;
             if let Some(c) = v.borrow_mut().state.camera.as_mut() {
                 c.distance = (c.distance * (ev.delta_y() * 0.001).exp()).clamp(1e-3, 1e7);
             }
@@ -1124,6 +1133,7 @@ fn wire_camera(v: &Shared, canvas: &HtmlCanvasElement) {
                 };
                 ev.prevent_default();
                 c.target = (DVec3::from_array(c.target) + d * step(c)).to_array();
+                b.auto_camera = false;
             }
             schedule(&v);
         });
