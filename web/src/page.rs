@@ -11,6 +11,7 @@ use web_sys::{
     HtmlInputElement, MessageEvent, Worker,
 };
 
+use crate::dom::{by_id, clear, document, listen, text_el};
 use crate::protocol::{capitalize, describe_size, explain_error, group_digits};
 use silvr_core::gpu::AdapterReport;
 use silvr_core::lidar::project::SelfCheck;
@@ -476,30 +477,7 @@ fn show_files(doc: &web_sys::Document, files: &FileList) {
     el.append_child(&list).ok();
 }
 
-// ----- small DOM helpers -----
-
-pub(crate) fn document() -> web_sys::Document {
-    web_sys::window()
-        .and_then(|w| w.document())
-        .expect("the studio runs in a page with a document")
-}
-
-pub(crate) fn by_id(doc: &web_sys::Document, id: &str) -> Option<Element> {
-    doc.get_element_by_id(id)
-}
-
-fn clear(el: &Element) {
-    el.set_text_content(None);
-}
-
-pub(crate) fn text_el(doc: &web_sys::Document, tag: &str, class: &str, text: &str) -> Element {
-    let e = doc.create_element(tag).unwrap();
-    if !class.is_empty() {
-        e.set_class_name(class);
-    }
-    e.set_text_content(Some(text));
-    e
-}
+// ----- page-only DOM pieces -----
 
 /// A collapsed `<details>` block with technical text.
 fn details(doc: &web_sys::Document, text: &str) -> Element {
@@ -518,19 +496,6 @@ fn table(doc: &web_sys::Document, rows: &[(&str, String)]) -> Element {
         dl.append_child(&text_el(doc, "dd", "", v)).ok();
     }
     dl
-}
-
-pub(crate) fn listen<E: JsCast + 'static>(
-    target: &web_sys::EventTarget,
-    name: &str,
-    mut f: impl FnMut(E) + 'static,
-) {
-    let cb = Closure::<dyn FnMut(Event)>::new(move |ev: Event| f(ev.unchecked_into::<E>()));
-    target
-        .add_event_listener_with_callback(name, cb.as_ref().unchecked_ref())
-        .ok();
-    // Page-lifetime listeners.
-    cb.forget();
 }
 
 fn body_state(doc: &web_sys::Document) -> Option<String> {

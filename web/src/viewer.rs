@@ -23,7 +23,7 @@ use web_sys::{
     KeyboardEvent, PointerEvent, WheelEvent, Worker,
 };
 
-use crate::page::{by_id, document, listen, text_el};
+use crate::dom::{by_id, document, listen, text_el};
 use crate::protocol::group_digits;
 
 /// Steps of the threshold slider between the filter field's smallest and largest value.
