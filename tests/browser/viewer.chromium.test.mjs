@@ -3,7 +3,7 @@
 
 import { createRequire } from 'node:module';
 import { join } from 'node:path';
-import { ROOT, viewerSuite } from './viewer.mjs';
+import { ROOT, collectLog, viewerSuite } from './viewer.mjs';
 
 const { chromium } = createRequire(join(ROOT, 'web', 'package.json'))('playwright-core');
 const CHROMIUM = process.env.SILVR_CHROMIUM || '/usr/bin/chromium';
@@ -30,14 +30,7 @@ viewerSuite({
   close: (b) => b?.close().catch(() => {}),
   newPage: async (browser) => {
     const page = await browser.newPage({ viewport: { width: 1100, height: 900 } });
-    const log = [];
-    page.on('console', (m) => log.push(`[${m.type()}] ${m.text()}`));
-    page.on('pageerror', (e) => log.push(`[pageerror] ${e.message}`));
-    page.on('dialog', (d) => {
-      log.push(`[pageerror] a dialog opened: ${d.message()}`);
-      d.dismiss().catch(() => {});
-    });
-    return { page, log };
+    return { page, log: collectLog(page) };
   },
   goto: (page, url) => page.goto(url, { waitUntil: 'load' }),
   waitFor: (page, fn, arg, timeout) => page.waitForFunction(fn, arg, { timeout }),

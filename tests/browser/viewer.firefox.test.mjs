@@ -4,7 +4,7 @@
 import { createRequire } from 'node:module';
 import { existsSync } from 'node:fs';
 import { join } from 'node:path';
-import { ROOT, viewerSuite } from './viewer.mjs';
+import { ROOT, collectLog, viewerSuite } from './viewer.mjs';
 
 const puppeteer = createRequire(join(ROOT, 'web', 'package.json'))('puppeteer-core');
 const FIREFOX = process.env.SILVR_FIREFOX || '/usr/bin/firefox-esr';
@@ -30,14 +30,7 @@ viewerSuite({
   newPage: async (browser) => {
     const page = await browser.newPage();
     await page.setViewport({ width: 1100, height: 900 });
-    const log = [];
-    page.on('console', (m) => log.push(`[${m.type()}] ${m.text()}`));
-    page.on('pageerror', (e) => log.push(`[pageerror] ${e.message}`));
-    page.on('dialog', (d) => {
-      log.push(`[pageerror] a dialog opened: ${d.message()}`);
-      d.dismiss().catch(() => {});
-    });
-    return { page, log };
+    return { page, log: collectLog(page) };
   },
   goto: (page, url) => page.goto(url, { waitUntil: 'load' }),
   waitFor: (page, fn, arg, timeout) => page.waitForFunction(fn, { timeout, polling: 100 }, arg),

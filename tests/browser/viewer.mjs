@@ -27,6 +27,18 @@ const MIME = {
   '.css': 'text/css; charset=utf-8',
 };
 
+/** Collects what a page logs, and turns dialogs into errors (a link must never open one). */
+export function collectLog(page) {
+  const log = [];
+  page.on('console', (m) => log.push(`[${m.type()}] ${m.text()}`));
+  page.on('pageerror', (e) => log.push(`[pageerror] ${e.message}`));
+  page.on('dialog', (d) => {
+    log.push(`[pageerror] a dialog opened: ${d.message()}`);
+    d.dismiss().catch(() => {});
+  });
+  return log;
+}
+
 /** The vertex count a PLY header declares. */
 export function plyVertexCount(path) {
   const head = readFileSync(path).subarray(0, 4096).toString('latin1');
@@ -94,6 +106,7 @@ export function viewerSuite(driver) {
   const ready = existsSync(join(DIST, 'index.html')) && existsSync(join(FIXTURES, 'points.ply'));
   describe(`studio view in ${driver.name}`, { timeout: 12 * STEP_TIMEOUT_MS }, () => {
     let server, browser;
+    let backendLogged = false;
     before(async () => {
       if (!ready) {
         throw new Error(
@@ -115,6 +128,14 @@ export function viewerSuite(driver) {
       await driver.waitFor(page, () => document.body.dataset.state !== 'loading', null, STARTUP_TIMEOUT_MS);
       const state = await driver.evaluate(page, () => document.body.dataset.state);
       assert.equal(state, 'ready', `studio state ${state}\n${log.join('\n')}`);
+      // The product path: the engine's WebGPU device in the browser (no other backend exists there).
+      const adapter = await driver.evaluate(page, () => document.querySelector('#adapter').textContent);
+      assert.match(adapter, /BrowserWebGpu/, adapter);
+      if (!backendLogged) {
+        backendLogged = true;
+        const name = await driver.evaluate(page, () => document.querySelector('#adapter').dataset.name);
+        console.log(`${driver.name}: the view runs on WebGPU (BrowserWebGpu), adapter '${name}'`);
+      }
       return { page, log };
     };
     const layersLoaded = (page, n) =>

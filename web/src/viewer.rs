@@ -14,7 +14,9 @@ use std::rc::Rc;
 
 use glam::DVec3;
 use serde::Serialize;
-use silvr_worker::studio::{FilterCounts, LayerInfo, LAYER_COLOURS, MAX_LAYERS};
+use silvr_worker::studio::{
+    scalar_range, union_box, FilterCounts, LayerInfo, LAYER_COLOURS, MAX_LAYERS,
+};
 use silvr_worker::view::{is_fetchable, Camera, Colour, Nav, ViewState, MAX_SOURCES};
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
@@ -421,36 +423,11 @@ fn schedule_hash(v: &Shared) {
 }
 
 fn bounds(b: &Viewer) -> Option<([f64; 3], [f64; 3])> {
-    boxes(b, |l| (l.min, l.max))
+    union_box(b.layers.iter(), &b.state, |l| (l.min, l.max))
 }
 
 fn fit_bounds(b: &Viewer) -> Option<([f64; 3], [f64; 3])> {
-    boxes(b, |l| (l.fit_min, l.fit_max))
-}
-
-fn boxes(
-    b: &Viewer,
-    of: impl Fn(&LayerInfo) -> ([f64; 3], [f64; 3]),
-) -> Option<([f64; 3], [f64; 3])> {
-    let visible: Vec<&LayerInfo> = b
-        .layers
-        .iter()
-        .filter(|l| !b.state.hidden.contains(&l.index))
-        .collect();
-    let set: Vec<&LayerInfo> = if visible.is_empty() {
-        b.layers.iter().collect()
-    } else {
-        visible
-    };
-    let first = set.first()?;
-    let (a, z) = of(first);
-    let (mut lo, mut hi) = (DVec3::from_array(a), DVec3::from_array(z));
-    for l in &set {
-        let (a, z) = of(l);
-        lo = lo.min(DVec3::from_array(a));
-        hi = hi.max(DVec3::from_array(z));
-    }
-    Some((lo.to_array(), hi.to_array()))
+    union_box(b.layers.iter(), &b.state, |l| (l.fit_min, l.fit_max))
 }
 
 fn fit(b: &Viewer) -> Option<Camera> {
@@ -554,22 +531,9 @@ fn value_text(field: &str, v: f64) -> String {
     }
 }
 
-/// The filter field's finite range over the visible layers.
+/// The filter field's finite range over the visible layers: the slider's ends.
 fn field_range(b: &Viewer, field: &str) -> Option<(f32, f32)> {
-    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-    for l in b
-        .layers
-        .iter()
-        .filter(|l| !b.state.hidden.contains(&l.index))
-    {
-        if let Some(s) = l.scalars.iter().find(|s| s.name == field) {
-            if let (Some(a), Some(z)) = (s.min, s.max) {
-                lo = lo.min(a);
-                hi = hi.max(z);
-            }
-        }
-    }
-    (lo <= hi).then_some((lo, hi))
+    scalar_range(b.layers.iter(), &b.state, field, |s| (s.min, s.max))
 }
 
 fn select(id: &str) -> Option<HtmlSelectElement> {
@@ -697,20 +661,9 @@ fn show_legend(v: &Shared) {
         el.set_attribute("hidden", "").ok();
         return;
     };
-    // The worker colours by the 2nd-98th percentile over the visible layers; the legend says the same.
-    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-    for l in b
-        .layers
-        .iter()
-        .filter(|l| !b.state.hidden.contains(&l.index))
-    {
-        if let Some(s) = l.scalars.iter().find(|s| &s.name == field) {
-            if let (Some(a), Some(z)) = (s.p02, s.p98) {
-                lo = lo.min(a);
-                hi = hi.max(z);
-            }
-        }
-    }
+    // The worker's colour range (2nd-98th percentiles over the visible layers), by the same function.
+    let (lo, hi) = scalar_range(b.layers.iter(), &b.state, field, |s| (s.p02, s.p98))
+        .unwrap_or((f32::INFINITY, f32::NEG_INFINITY));
     while let Some(c) = el.first_child() {
         el.remove_child(&c).ok();
     }

@@ -167,6 +167,49 @@ pub fn parse_cameras(bytes: &[u8], name: &str, source: &str, index: u32) -> Resu
     Ok(Layer::new(view, name, source, index))
 }
 
+/// The union of the boxes `of` picks over the visible layers (all layers when none is visible). One
+/// rule for the worker, which draws, and the page, which fits the camera and states the view matrix.
+pub fn union_box<'a>(
+    layers: impl Iterator<Item = &'a LayerInfo> + Clone,
+    view: &ViewState,
+    of: impl Fn(&LayerInfo) -> ([f64; 3], [f64; 3]),
+) -> Option<([f64; 3], [f64; 3])> {
+    let visible: Vec<&LayerInfo> = layers
+        .clone()
+        .filter(|l| !view.hidden.contains(&l.index))
+        .collect();
+    let set = if visible.is_empty() {
+        layers.collect()
+    } else {
+        visible
+    };
+    let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+    for l in &set {
+        let (a, b) = of(l);
+        lo = lo.min(DVec3::from_array(a));
+        hi = hi.max(DVec3::from_array(b));
+    }
+    (!set.is_empty()).then(|| (lo.to_array(), hi.to_array()))
+}
+
+/// The union of the ranges `of` picks from `field` over the visible layers that have it: the colour map's
+/// range (2nd-98th percentiles, the worker's colours and the page's legend) or the slider's (min-max).
+pub fn scalar_range<'a>(
+    layers: impl Iterator<Item = &'a LayerInfo>,
+    view: &ViewState,
+    field: &str,
+    of: impl Fn(&ScalarInfo) -> (Option<f32>, Option<f32>),
+) -> Option<(f32, f32)> {
+    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+    for l in layers.filter(|l| !view.hidden.contains(&l.index)) {
+        if let Some((Some(a), Some(b))) = l.scalars.iter().find(|s| s.name == field).map(&of) {
+            lo = lo.min(a);
+            hi = hi.max(b);
+        }
+    }
+    (lo <= hi).then_some((lo, hi))
+}
+
 /// The filter's outcome over the visible layers.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct FilterCounts {
@@ -195,32 +238,18 @@ impl Layers {
             .filter(move |l| !view.hidden.contains(&l.info.index))
     }
 
-    /// The bounds of the visible layers (all layers when none is visible): all points, and the box to
-    /// fit to view.
+    fn infos(&self) -> impl Iterator<Item = &LayerInfo> + Clone {
+        self.layers.iter().map(|l| &l.info)
+    }
+
+    /// The bounds of all points of the visible layers (see [`union_box`]).
     pub fn bounds(&self, view: &ViewState) -> Option<([f64; 3], [f64; 3])> {
-        self.boxes(view, |l| (l.info.min, l.info.max))
+        union_box(self.infos(), view, |l| (l.min, l.max))
     }
 
+    /// The box "fit to view" frames (see [`union_box`]).
     pub fn fit_bounds(&self, view: &ViewState) -> Option<([f64; 3], [f64; 3])> {
-        self.boxes(view, |l| (l.info.fit_min, l.info.fit_max))
-    }
-
-    fn boxes(
-        &self,
-        view: &ViewState,
-        of: impl Fn(&Layer) -> ([f64; 3], [f64; 3]),
-    ) -> Option<([f64; 3], [f64; 3])> {
-        let mut it: Vec<&Layer> = self.visible(view).collect();
-        if it.is_empty() {
-            it = self.layers.iter().collect();
-        }
-        let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
-        for l in &it {
-            let (a, b) = of(l);
-            lo = lo.min(DVec3::from_array(a));
-            hi = hi.max(DVec3::from_array(b));
-        }
-        (!it.is_empty()).then(|| (lo.to_array(), hi.to_array()))
+        union_box(self.infos(), view, |l| (l.fit_min, l.fit_max))
     }
 
     /// The default threshold of `field` over the visible layers (`None` when no value is finite: the
@@ -304,18 +333,9 @@ impl Layers {
             .collect()
     }
 
-    /// The colour map's range of `field`: the 2nd-98th percentile over the visible layers.
+    /// The colour map's range of `field` (see [`scalar_range`]).
     pub fn colour_range(&self, view: &ViewState, field: &str) -> Option<(f32, f32)> {
-        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-        for l in self.visible(view) {
-            if let Some(s) = l.info.scalars.iter().find(|s| s.name == field) {
-                if let (Some(a), Some(b)) = (s.p02, s.p98) {
-                    lo = lo.min(a);
-                    hi = hi.max(b);
-                }
-            }
-        }
-        (lo <= hi).then_some((lo, hi))
+        scalar_range(self.infos(), view, field, |s| (s.p02, s.p98))
     }
 
     /// The kept points of layer `index` as a PLY file (the native writer), with a file name.
