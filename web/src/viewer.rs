@@ -43,7 +43,6 @@ struct Viewer {
     frame_pending: bool,
     hash_pending: bool,
     drag: Option<(f64, f64, bool)>,
-    frames: u32,
     /// The camera was fitted by the studio, not set by a link or the user.
     auto_camera: bool,
     /// The canvas size the worker was last told (device pixels).
@@ -95,7 +94,6 @@ pub fn start(worker: &Worker) {
         frame_pending: false,
         hash_pending: false,
         drag: None,
-        frames: 0,
         auto_camera: false,
         size: (0, 0),
         seq: 0,
@@ -311,8 +309,6 @@ pub fn on_filter(counts: FilterCounts) {
 }
 
 pub fn on_frame(n: u32, ms: f64, points: u64, seq: u32) {
-    let Some(v) = viewer() else { return };
-    v.borrow_mut().frames = n;
     let doc = document();
     if let Some(c) = by_id(&doc, "view") {
         c.set_attribute("data-frames", &n.to_string()).ok();
