@@ -225,6 +225,15 @@ enum Command {
     /// Serve the built studio and a folder of reconstructions over HTTP, and print the link that opens
     /// the folder's PLY files in the studio.
     Serve(serve::ServeCmd),
+    /// Pack what training reads from a dataset (transforms.json, images, lidar depth, normals, sky masks,
+    /// calib, manifest) into one tar archive a user can drop into the studio, or inspect with `tar tf`.
+    Pack {
+        /// Dataset folder (or its transforms.json).
+        dataset: PathBuf,
+        /// The archive to write (`.tar`).
+        #[arg(long)]
+        out: PathBuf,
+    },
 }
 
 #[derive(clap::Args)]
@@ -406,11 +415,30 @@ fn main() {
         Command::BenchSampler(a) => train::bench_sampler(&a),
         Command::Bench { points, reps, json } => bench(points, reps, json),
         Command::Serve(c) => serve::run(c),
+        Command::Pack { dataset, out } => pack(&dataset, &out),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
         std::process::exit(1);
     }
+}
+
+/// `silvr pack`: one archive of a dataset's training inputs (written under a temporary name, then renamed).
+fn pack(dataset: &Path, out: &Path) -> Result<()> {
+    use silvr_core::source;
+    let (src, json) = source::open(dataset)?;
+    let files = source::pack(src.as_ref(), &json)?;
+    let tar = files.to_tar();
+    silvr_core::dataset::write_atomic(out, &tar)
+        .with_context(|| format!("writing {}", out.display()))?;
+    eprintln!(
+        "packed {} files ({:.1} MB) from {} into {}",
+        files.len(),
+        tar.len() as f64 / 1e6,
+        dataset.display(),
+        out.display()
+    );
+    Ok(())
 }
 
 /// The camera the self-check projects into: the Spires front fisheye at a quarter of its resolution.

@@ -7,10 +7,13 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use silvr_core::field::model::ModelConfig;
 use silvr_core::gpu::{Gpu, GpuOptions};
+use silvr_core::job::{self, DirSink, FinishOptions, JobSpec, Observer, Progress, Sink, TrainJob};
 use silvr_core::train::checkpoint::Checkpoint;
 use silvr_core::train::data::{LoadOptions, TrainData};
 use silvr_core::train::export::ViewScore;
 use silvr_core::train::{Backend, Mode, TrainConfig, Trainer};
+use std::cell::RefCell;
+use std::rc::Rc;
 
 /// Model sizes by name (see [`ModelConfig::preset`]).
 pub fn model_preset(name: &str, images: usize) -> Result<ModelConfig> {
@@ -46,7 +49,6 @@ pub struct TrainArgs {
 pub struct TrainSummary {
     pub train_s: f64,
     pub steps: u32,
-    pub final_psnr_train: f64,
     pub views: Vec<ViewScore>,
     pub points: Option<PathBuf>,
     /// `wgpu` or `cpu`.
@@ -108,13 +110,6 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
     for s in &data.skipped {
         eprintln!("warning: skipped {s}");
     }
-    if a.mode != Mode::Vision && !data.has_lidar() {
-        bail!(
-            "{}: mode {} needs lidar depth images (depth_file_path), and this dataset has none; use --mode vision",
-            a.dataset.display(),
-            a.mode.name()
-        );
-    }
     if !a.quiet {
         eprintln!(
             "loaded {} images ({} train, {} held out) in {:.1} s; scene scale {:.4} /m",
@@ -135,32 +130,32 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
     if !a.quiet {
         eprintln!("backend: {backend}, {adapter}");
     }
-    let mut trainer = match &a.resume {
+    let mut job = match &a.resume {
         Some(p) => {
-            let ck = Checkpoint::load(p)?;
-            let mut t = Trainer::resume(data, ck, engine)?;
-            t.config.steps = a.steps;
+            let job = TrainJob::resume(data, Checkpoint::load(p)?, engine, a.steps)?;
             if !a.quiet {
-                eprintln!("resumed {} at step {}", p.display(), t.step);
+                eprintln!("resumed {} at step {}", p.display(), job.trainer.step);
             }
-            t
+            job
         }
         None => {
-            let model = model_preset(&a.model, data.train.len())?;
-            let mut config = TrainConfig::for_run(a.mode, a.steps, a.rays, a.seed);
-            if let Some((a0, a1)) = a.depth_sigma {
-                config.schedule_sigma(a0, a1);
-            }
-            Trainer::new(data, model, config, engine)?
+            let spec = JobSpec {
+                mode: a.mode,
+                model: a.model.clone(),
+                steps: a.steps,
+                rays: a.rays,
+                seed: a.seed,
+                depth_sigma: a.depth_sigma,
+            };
+            TrainJob::new(data, &spec, engine)?
         }
     };
+    let mut sink = DirSink(a.out.clone());
     let ckpt = a.out.join("checkpoint.ckpt");
-    let t0 = Instant::now();
-    let start = trainer.step;
     let mut last_print = Instant::now();
-    while trainer.step < a.steps {
-        let stats = match pollster::block_on(trainer.train_step()) {
-            Ok(s) => s,
+    while !job.done() {
+        let r = match pollster::block_on(job.step()) {
+            Ok(r) => r,
             Err(e) => {
                 let resume = match Checkpoint::load(&ckpt) {
                     Ok(ck) => format!(
@@ -172,199 +167,106 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
                     Err(_) => "no checkpoint was written yet (--checkpoint-every N writes one every N steps)"
                         .to_string(),
                 };
-                bail!("training stopped at step {}: {e}\n{resume}", trainer.step);
-            }
-        };
-        let done = trainer.step;
-        if !a.quiet && (last_print.elapsed().as_secs_f64() > 5.0 || done == a.steps) {
-            last_print = Instant::now();
-            let el = t0.elapsed().as_secs_f64();
-            let eta = el / (done - start) as f64 * (a.steps - done) as f64;
-            eprintln!(
-                "step {done}/{} loss {:.4} psnr {:.2} dB depth {:.4} il {:.4} ({:.1} s, ETA {:.0} s)",
-                a.steps,
-                stats.loss,
-                stats.psnr(),
-                stats.depth,
-                stats.interlevel,
-                el,
-                eta
-            );
-        }
-        if a.checkpoint_every > 0 && done % a.checkpoint_every == 0 {
-            pollster::block_on(trainer.checkpoint())?.save(&ckpt)?;
-        }
-    }
-    let train_s = t0.elapsed().as_secs_f64();
-    let mut stages = serde_json::json!({ "training": trainer.engine.name() });
-    pollster::block_on(trainer.checkpoint())?.save(&ckpt)?;
-    let recent = &trainer.history[trainer.history.len().saturating_sub(20)..];
-    let mse = recent.iter().map(|s| s.rgb_mse).sum::<f64>() / recent.len().max(1) as f64;
-    // Held-out views: scores and renders, with progress and ETA on long renders.
-    if !a.quiet {
-        let mut last = Instant::now();
-        let mut start: Option<Instant> = None;
-        trainer.render_progress = Some(Box::new(move |done, total| {
-            let t0 = *start.get_or_insert_with(Instant::now);
-            if done == total {
-                start = None;
-            }
-            if last.elapsed().as_secs_f64() > 5.0 {
-                last = Instant::now();
-                let el = t0.elapsed().as_secs_f64();
-                eprintln!(
-                    "  rendering {done}/{total} rays ({:.0} rays/s, ETA {:.0} s)",
-                    done as f64 / el.max(1e-9),
-                    el / done.max(1) as f64 * (total - done) as f64
+                bail!(
+                    "training stopped at step {}: {e}\n{resume}",
+                    job.trainer.step
                 );
             }
-        }));
-    }
-    let renders = a.out.join("renders");
-    std::fs::create_dir_all(&renders)?;
-    let t_render = Instant::now();
-    let mut rendered_rays = 0usize;
-    let mut views = Vec::new();
-    let val: Vec<usize> = trainer
-        .data
-        .val
-        .iter()
-        .copied()
-        .take(a.render_views.unwrap_or(usize::MAX))
-        .collect();
-    for (k, &i) in val.iter().enumerate() {
-        // Normals for the first held-out view only: they cost six more density evaluations per sample.
-        let normals = a.view_normals && k == 0;
-        let v = pollster::block_on(trainer.render_view(i, normals))?;
-        rendered_rays += v.valid.len();
-        let score = trainer.score_view(i, &v)?;
-        let (rgb, depth, normal_png) = trainer.view_pngs(i, &v);
-        let stem = trainer.data.images[i]
-            .name
-            .replace(['/', '\\'], "_")
-            .trim_end_matches(".png")
-            .trim_end_matches(".jpg")
-            .to_string();
-        write(&renders.join(format!("{stem}_rgb.png")), &rgb)?;
-        write(&renders.join(format!("{stem}_depth.png")), &depth)?;
-        if a.view_normals && k == 0 {
-            write(&renders.join(format!("{stem}_normal.png")), &normal_png)?;
-        }
-        views.push(score);
-    }
-    let render_s = t_render.elapsed().as_secs_f64();
-    if !views.is_empty() {
-        stages["renders"] = trainer.engine.name().into();
-        if !a.quiet {
+        };
+        if !a.quiet && (last_print.elapsed().as_secs_f64() > 5.0 || r.step == r.steps) {
+            last_print = Instant::now();
             eprintln!(
-                "rendered {} held-out views ({rendered_rays} rays) in {render_s:.1} s: {:.0} rays/s",
-                views.len(),
-                rendered_rays as f64 / render_s
+                "step {}/{} loss {:.4} psnr {:.2} dB depth {:.4} il {:.4} ({:.1} s, {:.0} rays/s, ETA {:.0} s)",
+                r.step, r.steps, r.loss, r.psnr, r.depth, r.interlevel, r.train_s, r.rays_per_s, r.eta_s
             );
         }
-    }
-    let t_export = Instant::now();
-    let points = if a.export_rays > 0 {
-        let cloud = pollster::block_on(trainer.export_points(
-            a.export_rays,
-            a.seed ^ 0xE0,
-            a.view_normals,
-            a.export_depth,
-        ))?;
-        let p = a.out.join("points.ply");
-        silvr_core::pointcloud::write_ply(&p, &cloud)?;
-        stages["export"] = trainer.engine.name().into();
-        if !a.quiet {
-            eprintln!(
-                "exported {} points from {} rays in {:.1} s",
-                cloud.len(),
-                a.export_rays,
-                t_export.elapsed().as_secs_f64()
-            );
+        if a.checkpoint_every > 0 && r.step % a.checkpoint_every == 0 {
+            sink.put(
+                "checkpoint.ckpt",
+                &pollster::block_on(job.checkpoint_bytes())?,
+            )?;
         }
-        Some(p)
+    }
+    let observer: Observer = if a.quiet {
+        job::quiet()
     } else {
-        None
+        let mut last = Instant::now();
+        Rc::new(RefCell::new(move |p: Progress| {
+            if last.elapsed().as_secs_f64() > 5.0 {
+                last = Instant::now();
+                eprintln!(
+                    "  {} {}/{} ({:.0}/s, ETA {:.0} s)",
+                    p.stage,
+                    p.done,
+                    p.total,
+                    p.done as f64 / p.elapsed_s.max(1e-9),
+                    p.eta_s()
+                );
+            }
+        }))
     };
-    let export_s = t_export.elapsed().as_secs_f64();
-    trainer.render_progress = None;
-    let uncertainty = match &a.uncertainty {
-        Some(cfg) => {
-            let u = crate::uncertainty::annotate(&mut trainer, cfg, &a.out, a.quiet)?;
-            stages["uncertainty"] = trainer.engine.name().into();
-            Some(u)
+    let opts = FinishOptions {
+        dataset: a.dataset.display().to_string(),
+        render_views: a.render_views,
+        view_normals: a.view_normals,
+        export_rays: a.export_rays,
+        export_depth: a.export_depth,
+        uncertainty: a.uncertainty.clone(),
+        adapter: adapter.clone(),
+    };
+    let s = pollster::block_on(job.finish(&opts, &mut sink, observer))?;
+    if !a.quiet {
+        if let Some(r) = s.render_rays_per_s {
+            eprintln!("rendered {} held-out views: {r:.0} rays/s", s.heldout.len());
         }
-        None => None,
-    };
-    let summary = TrainSummary {
-        uncertainty,
-        train_s,
-        steps: trainer.step,
-        final_psnr_train: -10.0 * mse.max(1e-12).log10(),
-        views,
-        points,
-        backend,
-        adapter,
-        stages,
-    };
-    let json = serde_json::json!({
-        "mode": trainer.config.mode.name(),
-        "dataset": a.dataset,
-        "steps": summary.steps,
-        "train_s": summary.train_s,
-        "backend": summary.backend,
-        "backends": summary.stages,
-        "adapter": summary.adapter,
-        "train_psnr_last20": summary.final_psnr_train,
-        "heldout": summary.views,
-        "heldout_psnr_mean": mean(summary.views.iter().map(|v| v.psnr)),
-        "heldout_ssim_mean": mean(summary.views.iter().map(|v| v.ssim)),
-        "points": summary.points,
-        "train_rays_per_s": (summary.steps.saturating_sub(start)) as f64 * a.rays as f64 / summary.train_s.max(1e-9),
-        "render_rays_per_s": (rendered_rays > 0).then(|| rendered_rays as f64 / render_s),
-        "export_rays_per_s": (a.export_rays > 0).then(|| a.export_rays as f64 / export_s),
-        "uncertainty_s": summary.uncertainty.as_ref().map(|u| u.seconds),
-    });
-    write(
-        &a.out.join("train.json"),
-        serde_json::to_string_pretty(&json)?.as_bytes(),
-    )?;
-    if !a.quiet && summary.views.is_empty() && !trainer.data.val.is_empty() {
+        if s.points.is_some() {
+            eprintln!("exported {} points from {} rays", s.exported, a.export_rays);
+        }
+        if let Some(u) = &s.uncertainty {
+            eprintln!(
+                "uncertainty: {} rays ({} lidar) in {:.1} s; kept {}/{} points (log10 std ≤ {:.2})",
+                u.rays, u.lidar_rays, u.seconds, u.kept, u.total, u.threshold
+            );
+        }
+    }
+    if !a.quiet && s.heldout.is_empty() && !job.trainer.data.val.is_empty() {
         eprintln!(
             "trained {} steps in {:.1} s; held-out views not rendered (--render-views 0)",
-            summary.steps, summary.train_s
+            s.steps, s.train_s
         );
-    } else if !a.quiet && summary.views.is_empty() {
+    } else if !a.quiet && s.heldout.is_empty() {
         eprintln!(
             "trained {} steps in {:.1} s; the dataset holds out no view, so there is no held-out PSNR",
-            summary.steps, summary.train_s
+            s.steps, s.train_s
         );
     } else if !a.quiet {
         eprintln!(
             "trained {} steps in {:.1} s; held-out PSNR {:.2} dB, SSIM {:.3} ({} views)",
-            summary.steps,
-            summary.train_s,
-            mean(summary.views.iter().map(|v| v.psnr)),
-            mean(summary.views.iter().map(|v| v.ssim)),
-            summary.views.len()
+            s.steps,
+            s.train_s,
+            s.heldout_psnr_mean,
+            s.heldout_ssim_mean,
+            s.heldout.len()
         );
     }
-    Ok(summary)
+    let points = s.points.as_ref().map(|p| a.out.join(p));
+    let uncertainty = s
+        .uncertainty
+        .as_ref()
+        .map(|u| crate::uncertainty::UncertaintySummary::from_job(u, &a.out));
+    Ok(TrainSummary {
+        uncertainty,
+        train_s: s.train_s,
+        steps: s.steps,
+        views: s.heldout.clone(),
+        points,
+        backend,
+        adapter,
+        stages: serde_json::to_value(&s.backends)?,
+    })
 }
 
-pub fn mean(v: impl Iterator<Item = f64>) -> f64 {
-    let (s, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
-    if n == 0 {
-        f64::NAN
-    } else {
-        s / n as f64
-    }
-}
-
-fn write(path: &Path, bytes: &[u8]) -> Result<()> {
-    silvr_core::dataset::write_atomic(path, bytes)
-        .with_context(|| format!("writing {}", path.display()))
-}
+pub use silvr_core::job::mean;
 
 pub struct BenchArgs {
     pub dataset: PathBuf,

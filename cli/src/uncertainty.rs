@@ -20,7 +20,9 @@ pub const FIELDS: [(&str, Modality); 3] = [
     ("log_std_combined", Modality::Combined),
 ];
 
-use silvr_core::uncertainty::filter::default_threshold;
+use silvr_core::job::{self, DirSink, Observer, Progress};
+use std::cell::RefCell;
+use std::rc::Rc;
 
 pub struct UncertaintyArgs {
     pub model_dir: PathBuf,
@@ -98,142 +100,73 @@ fn dataset_of(dir: &Path) -> Result<PathBuf> {
         .with_context(|| format!("{} names no dataset; pass --dataset", p.display()))
 }
 
+impl UncertaintySummary {
+    /// The CLI's view of the job's summary: the files it wrote into `dir`.
+    pub fn from_job(u: &silvr_core::job::UncertaintySummary, dir: &Path) -> UncertaintySummary {
+        UncertaintySummary {
+            seconds: u.seconds,
+            fisher_path: dir.join("uncertainty.bin"),
+            points: u.annotated.then(|| dir.join("points.ply")),
+            filtered: u.annotated.then(|| dir.join("points_filtered.ply")),
+            threshold: u.threshold,
+            kept: u.kept,
+            total: u.total,
+            rays: u.rays,
+            lidar_rays: u.lidar_rays,
+        }
+    }
+}
+
 /// Runs the pass on a live trainer and writes into `dir`: `uncertainty.bin` (the Fisher diagonals),
 /// the read-out as fields of `points.ply` (when the folder has one), `points_filtered.ply` (default
-/// threshold) and `renders/*_uncertainty.png` for the first held-out view.
+/// threshold) and `renders/*_uncertainty.png` for the first held-out view (the job API's pass).
 pub fn annotate(
     trainer: &mut Trainer,
     config: &UncertaintyConfig,
     dir: &Path,
     quiet: bool,
 ) -> Result<UncertaintySummary> {
-    let t0 = Instant::now();
-    let mut last = Instant::now();
-    let fisher = pollster::block_on(uncertainty::compute_fisher(trainer, config, |d, n| {
-        if !quiet && (last.elapsed().as_secs_f64() > 5.0 || d == n) {
-            last = Instant::now();
-            eprintln!(
-                "uncertainty batch {d}/{n} ({:.1} s)",
-                t0.elapsed().as_secs_f64()
-            );
-        }
-    }))?;
-    let seconds = t0.elapsed().as_secs_f64();
-    let fisher_path = dir.join("uncertainty.bin");
-    write(&fisher_path, &fisher.to_bytes())?;
-    let frame = trainer.data.frame;
     let points_path = dir.join("points.ply");
-    let (mut points, mut filtered, mut threshold, mut kept, mut total) =
-        (None, None, f32::INFINITY, 0, 0);
-    if points_path.is_file() {
-        let mut cloud = read_ply(&points_path)?;
-        annotate_cloud(&fisher, &frame, &mut cloud);
-        write_ply_atomic(&points_path, &cloud)?;
-        let comb = cloud
-            .scalar("log_std_combined")
-            .expect("annotated above")
-            .to_vec();
-        threshold = default_threshold(&comb);
-        let f = filter(&cloud, "log_std_combined", threshold);
-        kept = f.len();
-        total = cloud.len();
-        let fp = dir.join("points_filtered.ply");
-        write_ply_atomic(&fp, &f)?;
-        points = Some(points_path);
-        filtered = Some(fp);
-    }
-    if let Some(&i) = trainer.data.val.first() {
-        let png = uncertainty_image(trainer, &fisher, i)?;
-        let renders = dir.join("renders");
-        std::fs::create_dir_all(&renders)?;
-        let stem = trainer.data.images[i]
-            .name
-            .replace(['/', '\\'], "_")
-            .trim_end_matches(".png")
-            .trim_end_matches(".jpg")
-            .to_string();
-        write(&renders.join(format!("{stem}_uncertainty.png")), &png)?;
+    let mut cloud = if points_path.is_file() {
+        Some(read_ply(&points_path)?)
+    } else {
+        None
+    };
+    let observer: Observer = if quiet {
+        job::quiet()
+    } else {
+        let mut last = Instant::now();
+        Rc::new(RefCell::new(move |p: Progress| {
+            if last.elapsed().as_secs_f64() > 5.0 || p.done == p.total {
+                last = Instant::now();
+                eprintln!(
+                    "uncertainty batch {}/{} ({:.1} s, ETA {:.0} s)",
+                    p.done,
+                    p.total,
+                    p.elapsed_s,
+                    p.eta_s()
+                );
+            }
+        }))
+    };
+    let mut sink = DirSink(dir.to_path_buf());
+    let u = pollster::block_on(job::uncertainty_pass(
+        trainer,
+        config,
+        cloud.as_mut(),
+        &mut sink,
+        observer,
+    ))?;
+    if let Some(c) = &cloud {
+        write_ply_atomic(&points_path, c)?;
     }
     if !quiet {
         eprintln!(
-            "uncertainty: {} rays ({} lidar) in {seconds:.1} s; kept {kept}/{total} points (log10 std ≤ {threshold:.2})",
-            fisher.rays, fisher.lidar_rays
+            "uncertainty: {} rays ({} lidar) in {:.1} s; kept {}/{} points (log10 std ≤ {:.2})",
+            u.rays, u.lidar_rays, u.seconds, u.kept, u.total, u.threshold
         );
     }
-    Ok(UncertaintySummary {
-        seconds,
-        fisher_path,
-        points,
-        filtered,
-        threshold,
-        kept,
-        total,
-        rays: fisher.rays,
-        lidar_rays: fisher.lidar_rays,
-    })
-}
-
-/// Adds the three read-out fields to a cloud in the dataset's metric frame.
-pub fn annotate_cloud(
-    fisher: &Fisher,
-    frame: &silvr_core::train::data::SceneFrame,
-    cloud: &mut PointCloud,
-) {
-    let scene: Vec<[f32; 3]> = cloud
-        .positions
-        .iter()
-        .map(|&p| frame.to_scene(p).as_vec3().to_array())
-        .collect();
-    let u = uncertainty::read_out(fisher, &scene, frame.scale);
-    cloud.set_scalar("log_std_colour", u.colour);
-    cloud.set_scalar("log_std_depth", u.depth);
-    cloud.set_scalar("log_std_combined", u.combined);
-}
-
-/// The points whose `field` is at most `threshold`.
-pub fn filter(cloud: &PointCloud, field: &str, threshold: f32) -> PointCloud {
-    let Some(v) = cloud.scalar(field) else {
-        return cloud.clone();
-    };
-    let keep: Vec<usize> = (0..v.len())
-        .filter(|&i| uncertainty::filter::keeps(v[i], threshold))
-        .collect();
-    cloud.select(&keep)
-}
-
-/// Per-pixel combined uncertainty of a held-out view, read out at each pixel's expected-depth point,
-/// as a greyscale PNG: black = the most certain pixel of the view, white = the prior.
-fn uncertainty_image(trainer: &mut Trainer, fisher: &Fisher, i: usize) -> Result<Vec<u8>> {
-    let v = pollster::block_on(trainer.render_view(i, false))?;
-    let (rays, _) = trainer.view_rays(i);
-    let scale = trainer.data.frame.scale as f32;
-    let pts: Vec<[f32; 3]> = rays
-        .iter()
-        .zip(&v.depth_m)
-        .map(|(r, &d)| {
-            let t = d * scale;
-            [0, 1, 2].map(|k| r.origin[k] + r.dir[k] * t)
-        })
-        .collect();
-    let u = uncertainty::read_out(fisher, &pts, trainer.data.frame.scale).combined;
-    let lo = u
-        .iter()
-        .cloned()
-        .filter(|x| x.is_finite())
-        .fold(f32::INFINITY, f32::min);
-    let hi = fisher.prior_log_std() - (trainer.data.frame.scale.log10() as f32);
-    let img = image::GrayImage::from_fn(v.width, v.height, |x, y| {
-        let k = (y * v.width + x) as usize;
-        if !v.valid[k] {
-            return image::Luma([0]);
-        }
-        let s = ((u[k] - lo) / (hi - lo).max(1e-6)).clamp(0.0, 1.0);
-        image::Luma([(s * 255.0).round() as u8])
-    });
-    let mut out = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Png)
-        .context("encoding the uncertainty image")?;
-    Ok(out)
+    Ok(UncertaintySummary::from_job(&u, dir))
 }
 
 /// Sparsification curves, AUSE (per modality, and a random ordering's), plots and the filtered cloud's

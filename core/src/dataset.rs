@@ -210,7 +210,17 @@ fn encode_png(width: u32, height: u32, color: image::ExtendedColorType, data: &[
 
 /// Reads a 16-bit PNG (depth images).
 pub fn read_png16(path: &Path) -> Result<(u32, u32, Vec<u16>), DatasetError> {
-    let img = image::open(path).map_err(|e| fmt_err(path, format!("not a readable PNG: {e}")))?;
+    decode_png16(&fs::read(path).map_err(io_err(path))?, path)
+}
+
+/// An image decoded from bytes (`path` names them in errors), its format found from its first bytes.
+fn decode(bytes: &[u8], path: &Path, what: &str) -> Result<image::DynamicImage, DatasetError> {
+    image::load_from_memory(bytes).map_err(|e| fmt_err(path, format!("not a readable {what}: {e}")))
+}
+
+/// [`read_png16`] of bytes already read.
+pub fn decode_png16(bytes: &[u8], path: &Path) -> Result<(u32, u32, Vec<u16>), DatasetError> {
+    let img = decode(bytes, path, "PNG")?;
     match img {
         image::DynamicImage::ImageLuma16(b) => Ok((b.width(), b.height(), b.into_raw())),
         other => Err(fmt_err(
@@ -222,7 +232,12 @@ pub fn read_png16(path: &Path) -> Result<(u32, u32, Vec<u16>), DatasetError> {
 
 /// Reads an 8-bit RGB image (PNG or JPEG), converting grey or RGBA.
 pub fn read_rgb(path: &Path) -> Result<(u32, u32, Vec<[u8; 3]>), DatasetError> {
-    let img = image::open(path).map_err(|e| fmt_err(path, format!("not a readable image: {e}")))?;
+    decode_rgb(&fs::read(path).map_err(io_err(path))?, path)
+}
+
+/// [`read_rgb`] of bytes already read.
+pub fn decode_rgb(bytes: &[u8], path: &Path) -> Result<(u32, u32, Vec<[u8; 3]>), DatasetError> {
+    let img = decode(bytes, path, "image")?;
     let b = img.to_rgb8();
     let (w, h) = (b.width(), b.height());
     Ok((
@@ -237,7 +252,12 @@ pub fn read_rgb(path: &Path) -> Result<(u32, u32, Vec<[u8; 3]>), DatasetError> {
 
 /// Reads an 8-bit grey PNG (masks, labels).
 pub fn read_gray8(path: &Path) -> Result<(u32, u32, Vec<u8>), DatasetError> {
-    let img = image::open(path).map_err(|e| fmt_err(path, format!("not a readable image: {e}")))?;
+    decode_gray8(&fs::read(path).map_err(io_err(path))?, path)
+}
+
+/// [`read_gray8`] of bytes already read.
+pub fn decode_gray8(bytes: &[u8], path: &Path) -> Result<(u32, u32, Vec<u8>), DatasetError> {
+    let img = decode(bytes, path, "image")?;
     match img {
         image::DynamicImage::ImageLuma8(b) => Ok((b.width(), b.height(), b.into_raw())),
         other => Err(fmt_err(

@@ -15,6 +15,7 @@ use crate::dataset::{self, NsFrame};
 use crate::geometry::Se3;
 use crate::lidar::images::{NO_NORMAL, SKY_DEPTH};
 use crate::render::RayTarget;
+use crate::source::Source;
 
 /// Why a dataset could not be loaded, naming the file.
 #[derive(Debug, thiserror::Error)]
@@ -197,15 +198,25 @@ fn resize_nearest<T: Copy>(px: Vec<T>, w: u32, h: u32, f: u32) -> Vec<T> {
 }
 
 impl TrainData {
-    /// Loads `dataset` (a folder holding transforms.json, or the JSON itself).
+    /// Loads `dataset`: a folder holding transforms.json, the JSON itself, or a `silvr pack` archive.
     pub fn load(dataset: &Path, opts: &LoadOptions) -> Result<TrainData, DataError> {
-        let json = if dataset.is_dir() {
-            dataset.join("transforms.json")
-        } else {
-            dataset.to_path_buf()
-        };
-        let root = json.parent().unwrap_or(Path::new(".")).to_path_buf();
-        let (frames, train_names, val_names) = dataset::read_frames(&json)?;
+        let (src, json) = crate::source::open(dataset)?;
+        Self::load_from(src.as_ref(), &json, opts)
+    }
+
+    /// Loads the dataset whose `transforms.json` is `json` in `src` (a folder natively; dropped files or
+    /// an archive in the studio): one loader, one set of errors, each naming the file.
+    pub fn load_from(
+        src: &dyn Source,
+        json_rel: &str,
+        opts: &LoadOptions,
+    ) -> Result<TrainData, DataError> {
+        let json = src.path(json_rel);
+        let root = src.root();
+        let text = src.read(json_rel)?;
+        let text = std::str::from_utf8(&text)
+            .map_err(|_| bad(&json, "is not UTF-8 text (a JSON file was expected)"))?;
+        let (frames, train_names, val_names) = dataset::parse_frames(text, &json)?;
         if frames.is_empty() {
             return Err(bad(&json, "no frames"));
         }
@@ -213,7 +224,7 @@ impl TrainData {
         let mut skipped = Vec::new();
         let mut kept = Vec::new();
         for fr in frames {
-            if !root.join(&fr.file_path).is_file() {
+            if !src.exists(&fr.file_path) {
                 skipped.push(format!("{}: image file missing", fr.file_path));
                 continue;
             }
@@ -249,7 +260,7 @@ impl TrainData {
         let mut val = Vec::new();
         let loaded: Vec<Result<_, DataError>> = kept
             .par_iter()
-            .map(|(fr, model, _)| load_pixels(&root, fr, model, f, opts.skip_lidar))
+            .map(|(fr, model, _)| load_pixels(src, fr, model, f, opts.skip_lidar))
             .collect();
         for (i, ((fr, model, pose), px)) in kept.iter().zip(loaded).enumerate() {
             let (rgb, depth, normals, sky, w, h) = px?;
@@ -354,14 +365,14 @@ impl TrainData {
 type Pixels = (Vec<[u8; 3]>, Vec<u16>, Vec<[u8; 3]>, Vec<u8>, u32, u32);
 
 fn load_pixels(
-    root: &Path,
+    src: &dyn Source,
     fr: &NsFrame,
     model: &CameraModel,
     f: u32,
     skip_lidar: bool,
 ) -> Result<Pixels, DataError> {
-    let path = root.join(&fr.file_path);
-    let img = image::open(&path)
+    let path = src.path(&fr.file_path);
+    let img = image::load_from_memory(&src.read(&fr.file_path)?)
         .map_err(|e| bad(&path, format!("cannot read image: {e}")))?
         .to_rgb8();
     let (w, h) = img.dimensions();
@@ -391,20 +402,20 @@ fn load_pixels(
     let (mut depth, mut normals, mut sky) = (Vec::new(), Vec::new(), Vec::new());
     if !skip_lidar {
         if let Some(rel) = &fr.depth_file_path {
-            let p = root.join(rel);
-            let (dw, dh, d) = dataset::read_png16(&p)?;
+            let p = src.path(rel);
+            let (dw, dh, d) = dataset::decode_png16(&src.read(rel)?, &p)?;
             check(&p, (dw, dh))?;
             depth = d;
         }
         if let Some(rel) = &fr.normal_file_path {
-            let p = root.join(rel);
-            let (nw, nh, n) = dataset::read_rgb(&p)?;
+            let p = src.path(rel);
+            let (nw, nh, n) = dataset::decode_rgb(&src.read(rel)?, &p)?;
             check(&p, (nw, nh))?;
             normals = n;
         }
         if let Some(rel) = &fr.sky_mask_path {
-            let p = root.join(rel);
-            let (sw, sh, s) = dataset::read_gray8(&p)?;
+            let p = src.path(rel);
+            let (sw, sh, s) = dataset::decode_gray8(&src.read(rel)?, &p)?;
             check(&p, (sw, sh))?;
             sky = s;
         }

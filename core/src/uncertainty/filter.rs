@@ -31,6 +31,19 @@ pub fn keeps(value: f32, threshold: f32) -> bool {
     value <= threshold
 }
 
+/// The points of `cloud` whose `field` is kept at `threshold` (all of them when it has no such field).
+pub fn filter_cloud(
+    cloud: &crate::pointcloud::PointCloud,
+    field: &str,
+    threshold: f32,
+) -> crate::pointcloud::PointCloud {
+    let Some(v) = cloud.scalar(field) else {
+        return cloud.clone();
+    };
+    let keep: Vec<usize> = (0..v.len()).filter(|&i| keeps(v[i], threshold)).collect();
+    cloud.select(&keep)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

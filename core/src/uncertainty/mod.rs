@@ -464,6 +464,24 @@ pub fn noise_scales(trainer: &Trainer) -> (f64, f64) {
     (colour, depth)
 }
 
+/// Adds the three read-out fields (`log_std_colour`, `log_std_depth`, `log_std_combined`: log10 posterior
+/// std in metres) to a cloud in the dataset's metric frame.
+pub fn annotate_cloud(
+    fisher: &Fisher,
+    frame: &crate::train::data::SceneFrame,
+    cloud: &mut crate::pointcloud::PointCloud,
+) {
+    let scene: Vec<[f32; 3]> = cloud
+        .positions
+        .iter()
+        .map(|&p| frame.to_scene(p).as_vec3().to_array())
+        .collect();
+    let u = read_out(fisher, &scene, frame.scale);
+    cloud.set_scalar("log_std_colour", u.colour);
+    cloud.set_scalar("log_std_depth", u.depth);
+    cloud.set_scalar("log_std_combined", u.combined);
+}
+
 /// The uncertainty pass over a trained field: `config.batches` batches of `config.rays_per_batch` pixel
 /// rays (colour) plus as many lidar rays (depth), through the trainer's engine (the WGSL pass on
 /// `Engine::Wgpu`, the CPU reference otherwise). Each Fisher is scaled from its samples to the whole
