@@ -845,8 +845,9 @@ fn adam(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         return;
     }
     var g = grad[i];
-    // Non-finite gradients (inf, NaN) count as zero, as the CPU update.
-    if (!(abs(g) <= 3.4028235e38)) {
+    // Non-finite gradients (inf, NaN) count as zero, as the CPU update. An exponent test on the bits:
+    // compilers may fold float comparisons with NaN, and Tint refuses f32::MAX written as a decimal.
+    if ((bitcast<u32>(g) & 0x7f800000u) == 0x7f800000u) {
         g = 0.0;
     }
     let m = prm.beta1 * adam_m[i] + (1.0 - prm.beta1) * g;

@@ -144,6 +144,13 @@ enum Command {
         /// DS-NeRF σ schedule, standard deviation in metres: start, end (decay ×0.99985 per step).
         #[arg(long, num_args = 2, value_names = ["START", "END"])]
         depth_sigma: Option<Vec<f32>>,
+        /// Run the uncertainty pass after training with this many batches (0: none; `silvr uncertainty`
+        /// runs it later): annotates points.ply, writes points_filtered.ply and uncertainty.bin.
+        #[arg(long, default_value_t = 0)]
+        uncertainty_batches: usize,
+        /// Rays per batch of that pass.
+        #[arg(long, default_value_t = 4096)]
+        uncertainty_rays: usize,
     },
     /// Training throughput and time to quality: field samples/s (forward + backward), rays/s per step,
     /// seconds to a target training PSNR. JSON on stdout.
@@ -341,6 +348,8 @@ fn main() {
             render_views,
             export_depth,
             depth_sigma,
+            uncertainty_batches,
+            uncertainty_rays,
         } => train::run(&train::TrainArgs {
             depth_sigma: depth_sigma.map(|v| (v[0], v[1])),
             dataset,
@@ -359,7 +368,13 @@ fn main() {
             export_depth,
             quiet: false,
             view_normals: true,
-            uncertainty: None,
+            uncertainty: (uncertainty_batches > 0).then(|| {
+                silvr_core::uncertainty::UncertaintyConfig {
+                    batches: uncertainty_batches,
+                    rays_per_batch: uncertainty_rays,
+                    ..Default::default()
+                }
+            }),
         })
         .map(|_| ()),
         Command::Uncertainty(c) => uncertainty_cmd(c),

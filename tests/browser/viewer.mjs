@@ -48,7 +48,7 @@ export function plyVertexCount(path) {
 }
 
 /** dist/ at /, the fixtures at /data/, plus the broken files the hostile-link test asks for. */
-async function serve() {
+export async function serve() {
   const points = readFileSync(join(FIXTURES, 'points.ply'));
   const extra = {
     '/data/truncated.ply': points.subarray(0, Math.floor(points.length * 0.6)),

@@ -12,6 +12,8 @@ mod dom;
 #[cfg(target_arch = "wasm32")]
 mod page;
 #[cfg(target_arch = "wasm32")]
+mod train;
+#[cfg(target_arch = "wasm32")]
 mod viewer;
 
 #[cfg(target_arch = "wasm32")]

@@ -47,6 +47,7 @@ pub fn start() {
         Ok(worker) => {
             crate::viewer::start(&worker);
             page.borrow_mut().worker = Some(worker);
+            crate::train::start();
         }
         Err(e) => fail(
             &doc,
@@ -75,6 +76,10 @@ fn start_worker(page: &Shared) -> Result<Worker, JsValue> {
             let kind = js_sys::Reflect::get(&data, &"type".into())
                 .ok()
                 .and_then(|t| t.as_string());
+            if kind.as_deref() == Some("train-view") {
+                crate::viewer::worker_listening();
+                return crate::train::on_view(&data);
+            }
             if kind.as_deref() == Some("download") {
                 let get =
                     |k: &str| js_sys::Reflect::get(&data, &k.into()).unwrap_or(JsValue::UNDEFINED);
@@ -169,6 +174,25 @@ fn on_worker_message(page: &Shared, msg: ToPage) {
             source, message, ..
         } => crate::viewer::on_load_error(&source, &message),
         ToPage::Filter { counts } => crate::viewer::on_filter(counts),
+        ToPage::TrainLoaded {
+            source,
+            images,
+            train,
+            held_out,
+            lidar,
+            skipped,
+            ..
+        } => crate::train::on_loaded(&source, images, train, held_out, lidar, &skipped),
+        ToPage::TrainState { state, step, steps } => crate::train::on_state(&state, step, steps),
+        ToPage::TrainStep { report } => crate::train::on_step(report),
+        ToPage::TrainProgress {
+            stage,
+            done,
+            total,
+            eta_s,
+        } => crate::train::on_progress(&stage, done, total, eta_s),
+        ToPage::TrainDone { summary } => crate::train::on_done(summary),
+        ToPage::TrainError { source, message } => crate::train::on_error(&source, &message),
         ToPage::Frame { n, ms, points, seq } => crate::viewer::on_frame(n, ms, points, seq),
         ToPage::Bench {
             frames,

@@ -198,6 +198,13 @@ fn send(v: &Shared, msg: JsValue, transfer: Option<js_sys::Array>) {
     }
 }
 
+/// Posts a message built by another card (training) to the worker, held until it listens.
+pub fn send_raw(msg: JsValue) {
+    if let Some(v) = viewer() {
+        send(&v, msg, None);
+    }
+}
+
 /// The worker has spoken, so it listens: send what was held.
 pub fn worker_listening() {
     let Some(v) = viewer() else { return };

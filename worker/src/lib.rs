@@ -27,6 +27,8 @@ use silvr_core::gpu::{AdapterReport, Gpu};
 use silvr_core::lidar::project::{self, SelfCheck};
 
 pub mod studio;
+#[cfg(target_arch = "wasm32")]
+mod train;
 pub mod view;
 #[cfg(target_arch = "wasm32")]
 mod web;
@@ -170,6 +172,37 @@ pub enum ToPage {
         ms_per_frame: f64,
         points: u64,
     },
+    /// A training dataset was read and loaded.
+    TrainLoaded {
+        id: u32,
+        source: String,
+        images: usize,
+        train: usize,
+        held_out: usize,
+        lidar: bool,
+        /// Frames listed but skipped, with why.
+        skipped: Vec<String>,
+    },
+    /// The run's state: `loading`, `running`, `paused`, `stopping`, `finishing`, `done`, `failed`.
+    TrainState {
+        state: String,
+        step: u32,
+        steps: u32,
+    },
+    /// One training step (sent after every step).
+    TrainStep { report: silvr_core::job::StepReport },
+    /// A stage after training (`render`, `export`, `uncertainty`), for the bar and its ETA.
+    TrainProgress {
+        stage: String,
+        done: usize,
+        total: usize,
+        eta_s: f64,
+    },
+    /// The run finished: its scores and outputs (the points were opened as a layer; `outputs` can be
+    /// asked for with `train-download`).
+    TrainDone { summary: TrainResult },
+    /// The run could not start or stopped: the source or stage, and the problem.
+    TrainError { source: String, message: String },
     Error {
         id: Option<u32>,
         stage: Stage,
@@ -214,6 +247,112 @@ pub enum FromPage {
     Bench { id: u32, frames: u32 },
     /// Destroys the device, as a driver reset or a GPU process crash would (tests of the recovery).
     DebugLoseDevice,
+    /// Fetch a dataset archive (`silvr pack`) over http(s) and train it. (Dropped files travel as
+    /// `{type: "train-files", id, files: [File], paths: [string], settings}`, read field by field.)
+    TrainUrl {
+        id: u32,
+        url: String,
+        settings: TrainSettings,
+    },
+    /// `pause`, `resume` or `stop` (stop still renders, exports and runs the uncertainty pass).
+    TrainControl { action: TrainAction },
+    /// One of the finished run's outputs (`points.ply`, `checkpoint.ckpt`, …) as a download.
+    TrainDownload { id: u32, name: String },
+}
+
+/// What the page's training form sets.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrainSettings {
+    pub job: silvr_core::job::JobSpec,
+    /// Integer image downscale (1 = full size), as `silvr train --downscale`.
+    #[serde(default = "one")]
+    pub downscale: u32,
+    /// A held-out view is rendered beside its photo every this many steps (0: only at the end).
+    #[serde(default = "default_view_every")]
+    pub view_every: u32,
+    /// Training rays of the point export.
+    #[serde(default = "default_export_rays")]
+    pub export_rays: usize,
+    /// Batches of the uncertainty pass (0: no pass), of `uncertainty_rays` rays each.
+    #[serde(default = "default_uncertainty_batches")]
+    pub uncertainty_batches: usize,
+    #[serde(default = "default_uncertainty_rays")]
+    pub uncertainty_rays: usize,
+}
+
+fn one() -> u32 {
+    1
+}
+fn default_view_every() -> u32 {
+    100
+}
+fn default_export_rays() -> usize {
+    16_384
+}
+fn default_uncertainty_batches() -> usize {
+    8
+}
+fn default_uncertainty_rays() -> usize {
+    1024
+}
+
+impl TrainSettings {
+    /// Refuses settings no adapter could run (absurd sizes) before anything is loaded.
+    pub fn validate(&self) -> Result<(), String> {
+        let j = &self.job;
+        if j.steps == 0 || j.steps > 1_000_000 {
+            return Err(format!("steps must be 1 to 1 000 000, not {}", j.steps));
+        }
+        if j.rays == 0 || j.rays > 1 << 20 {
+            return Err(format!(
+                "rays per batch must be 1 to 1 048 576, not {}",
+                j.rays
+            ));
+        }
+        if !(1..=16).contains(&self.downscale) {
+            return Err(format!("downscale must be 1 to 16, not {}", self.downscale));
+        }
+        if self.export_rays > 1 << 22 {
+            return Err(format!(
+                "export rays at most 4 194 304, not {}",
+                self.export_rays
+            ));
+        }
+        if self.uncertainty_batches > 10_000 || self.uncertainty_rays > 1 << 16 {
+            return Err("the uncertainty pass takes at most 10 000 batches of 65 536 rays".into());
+        }
+        silvr_core::field::model::ModelConfig::preset(&j.model, 1).map_err(|e| e.to_string())?;
+        Ok(())
+    }
+}
+
+/// What the training card's buttons ask.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TrainAction {
+    Pause,
+    Resume,
+    Stop,
+}
+
+/// A finished run as the page shows it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TrainResult {
+    pub steps: u32,
+    pub train_s: f64,
+    pub rays_per_s: f64,
+    pub backend: String,
+    pub heldout_psnr: f64,
+    pub heldout_ssim: f64,
+    pub held_out_views: usize,
+    pub points: usize,
+    /// Points the default uncertainty filter keeps, and its threshold (log10 m); `None` without the pass.
+    pub kept: Option<usize>,
+    pub threshold: Option<f32>,
+    /// `log_std_combined` quantiles (5, 25, 50, 75, 95 %) of the exported points.
+    pub log_std_quantiles: Vec<f32>,
+    /// Output names the worker holds.
+    pub outputs: Vec<String>,
 }
 
 impl FromPage {
@@ -223,8 +362,13 @@ impl FromPage {
             FromPage::RunCheck { id, .. } => *id,
             FromPage::OpenUrl { id, .. }
             | FromPage::Download { id, .. }
-            | FromPage::Bench { id, .. } => Some(*id),
-            FromPage::Resize { .. } | FromPage::View { .. } | FromPage::DebugLoseDevice => None,
+            | FromPage::Bench { id, .. }
+            | FromPage::TrainUrl { id, .. }
+            | FromPage::TrainDownload { id, .. } => Some(*id),
+            FromPage::Resize { .. }
+            | FromPage::View { .. }
+            | FromPage::DebugLoseDevice
+            | FromPage::TrainControl { .. } => None,
         }
     }
 }

@@ -27,8 +27,8 @@ enum GpuState {
 }
 
 /// The view's state in the worker: the device, the layers, the canvas it draws into.
-struct Studio {
-    gpu: Gpu,
+pub(crate) struct Studio {
+    pub(crate) gpu: Gpu,
     layers: Layers,
     view: ViewState,
     target: Option<Target>,
@@ -178,6 +178,36 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
             spawn_local(attach(studio.clone(), canvas, w, h));
             return;
         }
+        Some("train-files") => {
+            let id = message_id(&data).unwrap_or(0);
+            let settings = match serde_wasm_bindgen::from_value(get(&data, "settings")) {
+                Ok(s) => s,
+                Err(e) => {
+                    return post(&ToPage::TrainError {
+                        source: "the training settings".into(),
+                        message: e.to_string(),
+                    })
+                }
+            };
+            let files = js_sys::Array::from(&get(&data, "files"));
+            let paths = js_sys::Array::from(&get(&data, "paths"));
+            let files: Vec<(String, web_sys::File)> = files
+                .iter()
+                .enumerate()
+                .filter_map(|(i, f)| {
+                    let f = f.dyn_into::<web_sys::File>().ok()?;
+                    let p = paths.get(i as u32).as_string().unwrap_or_else(|| f.name());
+                    Some((p, f))
+                })
+                .collect();
+            spawn_local(crate::train::train_files(
+                studio.clone(),
+                id,
+                files,
+                settings,
+            ));
+            return;
+        }
         Some("open-file") => {
             let id = message_id(&data).unwrap_or(0);
             match get(&data, "file").dyn_into::<web_sys::File>() {
@@ -248,6 +278,11 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
             }
         }
         FromPage::Bench { id, frames } => spawn_local(bench(studio.clone(), id, frames)),
+        FromPage::TrainUrl { id, url, settings } => {
+            spawn_local(crate::train::train_url(studio.clone(), id, url, settings))
+        }
+        FromPage::TrainControl { action } => crate::train::control(action),
+        FromPage::TrainDownload { id, name } => crate::train::download(id, &name),
         FromPage::DebugLoseDevice => {
             let gpu = studio.borrow().gpu.clone();
             gpu.device.destroy();
@@ -268,7 +303,7 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
     }
 }
 
-async fn sleep_ms(ms: i32) {
+pub(crate) async fn sleep_ms(ms: i32) {
     let promise = js_sys::Promise::new(&mut |resolve, _| {
         let _ = scope().set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, ms);
     });
@@ -552,7 +587,7 @@ fn report_counts(studio: &Rc<RefCell<Studio>>) {
 }
 
 /// Reads a stream to its end into memory, reporting progress, refusing more than [`MAX_FILE_BYTES`].
-async fn read_stream(
+pub(crate) async fn read_stream(
     stream: web_sys::ReadableStream,
     total: Option<f64>,
     id: u32,
@@ -601,7 +636,7 @@ async fn read_stream(
     Ok(out)
 }
 
-fn js_text(e: &JsValue) -> String {
+pub(crate) fn js_text(e: &JsValue) -> String {
     e.as_string()
         .or_else(|| {
             e.dyn_ref::<js_sys::Error>()
@@ -692,7 +727,13 @@ async fn open_file(studio: Rc<RefCell<Studio>>, id: u32, file: web_sys::File) {
     }
 }
 
-fn add_layer(studio: &Rc<RefCell<Studio>>, id: u32, bytes: &[u8], name: &str, source: &str) {
+pub(crate) fn add_layer(
+    studio: &Rc<RefCell<Studio>>,
+    id: u32,
+    bytes: &[u8],
+    name: &str,
+    source: &str,
+) {
     {
         let s = studio.borrow();
         if s.layers.layers.len() >= MAX_LAYERS {
@@ -749,7 +790,7 @@ fn add_layer(studio: &Rc<RefCell<Studio>>, id: u32, bytes: &[u8], name: &str, so
 }
 
 /// Posts a download's bytes, transferring the buffer instead of copying it.
-fn post_bytes(id: u32, name: &str, bytes: &[u8]) {
+pub(crate) fn post_bytes(id: u32, name: &str, bytes: &[u8]) {
     let array = js_sys::Uint8Array::new_with_length(bytes.len() as u32);
     array.copy_from(bytes);
     let msg = js_sys::Object::new();
@@ -838,12 +879,12 @@ async fn browser_adapter_info() -> Result<Option<BrowserAdapterInfo>, String> {
     }))
 }
 
-fn scope() -> DedicatedWorkerGlobalScope {
+pub(crate) fn scope() -> DedicatedWorkerGlobalScope {
     js_sys::global().unchecked_into()
 }
 
 /// Posts a message to the page as a plain JS object (structs and maps become objects, u64 numbers).
-fn post(msg: &ToPage) {
+pub(crate) fn post(msg: &ToPage) {
     let serializer = serde_wasm_bindgen::Serializer::json_compatible();
     let value = match msg.serialize(&serializer) {
         Ok(v) => v,

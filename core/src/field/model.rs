@@ -105,9 +105,16 @@ impl ModelConfig {
                     p.grid.log2_table_size = 16;
                 }
             }
+            // Seconds per step on a software adapter (the studio's browser tests on SwiftShader): a
+            // coarse field for checks and previews, not for maps.
+            "tiny" => {
+                let images = m.images;
+                m = ModelConfig::tiny();
+                m.images = images;
+            }
             o => {
                 return Err(GpuError::InvalidInput(format!(
-                    "unknown model size {o:?} (nerfacto, medium, small)"
+                    "unknown model size {o:?} (nerfacto, medium, small, tiny)"
                 )))
             }
         }

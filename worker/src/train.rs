@@ -1,0 +1,388 @@
+//! Training in the worker: a dataset from dropped files, a `silvr pack` archive or a URL, loaded by the
+//! core's loader through [`silvr_core::source::Files`], then the core's job API ([`silvr_core::job`]) —
+//! the same steps, renders, export and uncertainty pass as `silvr train`. Steps are chained on the
+//! worker's event loop: every GPU readback is awaited and each step ends by yielding to the loop, so the
+//! page's pause / resume / stop messages are handled between steps and nothing blocks.
+
+use std::cell::RefCell;
+use std::collections::BTreeMap;
+use std::rc::Rc;
+
+use silvr_core::job::{FinishOptions, MemSink, Observer, Progress, TrainJob};
+use silvr_core::pointcloud::read_ply_bytes;
+use silvr_core::source::{Files, MAX_BYTES};
+use silvr_core::train::data::{LoadOptions, TrainData};
+use silvr_core::train::{Backend, Mode};
+use silvr_core::uncertainty::UncertaintyConfig;
+use wasm_bindgen::prelude::*;
+use wasm_bindgen::JsCast;
+
+use super::web::{js_text, post, post_bytes, read_stream, scope, sleep_ms, Studio};
+use crate::view::is_fetchable;
+use crate::{ToPage, TrainAction, TrainResult, TrainSettings};
+
+/// The layer number the trained points take in the view (the page numbers its own sources from 0).
+pub const TRAINED_LAYER: u32 = 1000;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Control {
+    Running,
+    Paused,
+    Stopping,
+}
+
+/// The run in this worker (one at a time) and the last run's outputs.
+#[derive(Default)]
+struct Slot {
+    control: Option<Control>,
+    step: (u32, u32),
+    outputs: BTreeMap<String, Vec<u8>>,
+}
+
+thread_local! {
+    static SLOT: RefCell<Slot> = RefCell::new(Slot::default());
+}
+
+fn state(state: &str) {
+    let (step, steps) = SLOT.with(|s| s.borrow().step);
+    post(&ToPage::TrainState {
+        state: state.into(),
+        step,
+        steps,
+    });
+}
+
+fn fail(source: &str, message: impl Into<String>) {
+    post(&ToPage::TrainError {
+        source: source.into(),
+        message: message.into(),
+    });
+}
+
+/// Pause, resume or stop the run in progress.
+pub(crate) fn control(action: TrainAction) {
+    let now = SLOT.with(|s| {
+        let mut s = s.borrow_mut();
+        let c = s.control.as_mut()?;
+        *c = match (action, *c) {
+            (_, Control::Stopping) => Control::Stopping,
+            (TrainAction::Pause, _) => Control::Paused,
+            (TrainAction::Resume, _) => Control::Running,
+            (TrainAction::Stop, _) => Control::Stopping,
+        };
+        Some(*c)
+    });
+    match now {
+        None => fail("training", "no training run is in progress"),
+        Some(Control::Paused) => state("paused"),
+        Some(Control::Running) => state("running"),
+        Some(Control::Stopping) => state("stopping"),
+    }
+}
+
+/// One of the last run's outputs, as a download.
+pub(crate) fn download(id: u32, name: &str) {
+    let bytes = SLOT.with(|s| s.borrow().outputs.get(name).cloned());
+    match bytes {
+        Some(b) => post_bytes(id, name.rsplit('/').next().unwrap_or(name), &b),
+        None => fail(
+            name,
+            "no such output: the run has not finished, or it did not write this file",
+        ),
+    }
+}
+
+/// Dropped or chosen files (`paths`: each file's path within what was dropped) → a training run.
+pub(crate) async fn train_files(
+    studio: Rc<RefCell<Studio>>,
+    id: u32,
+    files: Vec<(String, web_sys::File)>,
+    settings: TrainSettings,
+) {
+    let name = match files.as_slice() {
+        [(p, _)] => p.clone(),
+        [(p, _), ..] => p.split('/').next().unwrap_or("dropped files").to_string(),
+        [] => return fail("dropped files", "no file was given"),
+    };
+    let total: f64 = files.iter().map(|(_, f)| f.size()).sum();
+    if total > MAX_BYTES as f64 {
+        return fail(
+            &name,
+            format!(
+                "{:.0} MiB is more than the {} GiB the studio trains from",
+                total / 1048576.0,
+                MAX_BYTES >> 30
+            ),
+        );
+    }
+    state("loading");
+    let mut out = Files::new(name.clone());
+    for (path, file) in &files {
+        let bytes = match read_stream(file.stream(), Some(file.size()), id, path).await {
+            Ok(b) => b,
+            Err(e) => return fail(path, e),
+        };
+        let is_tar = files.len() == 1 && path.to_ascii_lowercase().ends_with(".tar");
+        if is_tar {
+            match Files::from_tar(path, &bytes) {
+                Ok(f) => out = f,
+                Err(e) => return fail(path, e.to_string()),
+            }
+        } else if let Err(e) = out.insert(path, bytes) {
+            return fail(path, e.to_string());
+        }
+    }
+    run(studio, id, out, settings).await
+}
+
+/// A dataset archive fetched over http(s) → a training run.
+pub(crate) async fn train_url(
+    studio: Rc<RefCell<Studio>>,
+    id: u32,
+    url: String,
+    settings: TrainSettings,
+) {
+    if !is_fetchable(&url) {
+        return fail(&url, "only http: and https: URLs are opened");
+    }
+    state("loading");
+    let response = match wasm_bindgen_futures::JsFuture::from(scope().fetch_with_str(&url)).await {
+        Ok(r) => r.unchecked_into::<web_sys::Response>(),
+        Err(e) => {
+            return fail(
+                &url,
+                format!(
+                    "could not be fetched: the server is unreachable or refused the studio's origin ({})",
+                    js_text(&e)
+                ),
+            )
+        }
+    };
+    if !response.ok() {
+        return fail(
+            &url,
+            format!(
+                "the server answered HTTP {} {}",
+                response.status(),
+                response.status_text()
+            ),
+        );
+    }
+    let total = response
+        .headers()
+        .get("content-length")
+        .ok()
+        .flatten()
+        .and_then(|v| v.trim().parse::<f64>().ok());
+    let Some(body) = response.body() else {
+        return fail(&url, "the response has no body");
+    };
+    let bytes = match read_stream(body, total, id, &url).await {
+        Ok(b) => b,
+        Err(e) => return fail(&url, e),
+    };
+    let name = url
+        .split(['?', '#'])
+        .next()
+        .and_then(|p| p.rsplit('/').next())
+        .filter(|n| !n.is_empty())
+        .unwrap_or("submap.tar")
+        .to_string();
+    match Files::from_tar(&name, &bytes) {
+        Ok(files) => run(studio, id, files, settings).await,
+        Err(e) => fail(&url, e.to_string()),
+    }
+}
+
+async fn run(studio: Rc<RefCell<Studio>>, id: u32, files: Files, settings: TrainSettings) {
+    if let Err(e) = settings.validate() {
+        return fail("the training settings", e);
+    }
+    let busy = SLOT.with(|s| {
+        let mut s = s.borrow_mut();
+        if s.control.is_some() {
+            return true;
+        }
+        s.control = Some(Control::Running);
+        s.step = (0, settings.job.steps);
+        s.outputs.clear();
+        false
+    });
+    if busy {
+        return fail(
+            &files.name,
+            "a training run is already in progress: stop it first",
+        );
+    }
+    let result = run_inner(&studio, id, files, &settings).await;
+    SLOT.with(|s| s.borrow_mut().control = None);
+    match result {
+        Ok(()) => state("done"),
+        Err((source, message)) => {
+            fail(&source, message);
+            state("failed");
+        }
+    }
+}
+
+type Failure = (String, String);
+
+async fn run_inner(
+    studio: &Rc<RefCell<Studio>>,
+    id: u32,
+    files: Files,
+    settings: &TrainSettings,
+) -> Result<(), Failure> {
+    let name = files.name.clone();
+    let files = files
+        .rooted_at_transforms()
+        .map_err(|e| (name.clone(), e.to_string()))?;
+    let opts = LoadOptions {
+        downscale: settings.downscale,
+        skip_lidar: settings.job.mode == Mode::Vision,
+    };
+    let data = TrainData::load_from(&files, "transforms.json", &opts)
+        .map_err(|e| (name.clone(), e.to_string()))?;
+    drop(files);
+    post(&ToPage::TrainLoaded {
+        id,
+        source: name.clone(),
+        images: data.images.len(),
+        train: data.train.len(),
+        held_out: data.val.len(),
+        lidar: data.has_lidar(),
+        skipped: data.skipped.clone(),
+    });
+    let has_val = !data.val.is_empty();
+    let gpu = studio.borrow().gpu.clone();
+    let adapter = gpu.report().to_string();
+    let mut job = TrainJob::new(data, &settings.job, Backend::Wgpu(gpu))
+        .map_err(|e| ("training".to_string(), e.to_string()))?;
+    state("running");
+    while !job.done() {
+        match SLOT.with(|s| s.borrow().control) {
+            Some(Control::Stopping) | None => break,
+            Some(Control::Paused) => {
+                sleep_ms(100).await;
+                continue;
+            }
+            Some(Control::Running) => {}
+        }
+        let r = job
+            .step()
+            .await
+            .map_err(|e| ("training".to_string(), e.to_string()))?;
+        SLOT.with(|s| s.borrow_mut().step = (r.step, r.steps));
+        post(&ToPage::TrainStep { report: r });
+        if has_val && settings.view_every > 0 && r.step % settings.view_every == 0 && !job.done() {
+            post_view(&mut job, None).await?;
+        }
+        // Let the page's messages (pause, stop, view changes) in between steps.
+        sleep_ms(0).await;
+    }
+    state("finishing");
+    let observer: Observer = Rc::new(RefCell::new(|p: Progress| {
+        post(&ToPage::TrainProgress {
+            stage: p.stage.into(),
+            done: p.done,
+            total: p.total,
+            eta_s: p.eta_s(),
+        })
+    }));
+    let uncertainty = (settings.uncertainty_batches > 0).then(|| UncertaintyConfig {
+        batches: settings.uncertainty_batches,
+        rays_per_batch: settings.uncertainty_rays,
+        ..Default::default()
+    });
+    let opts = FinishOptions {
+        dataset: name.clone(),
+        render_views: Some(8),
+        view_normals: false,
+        export_rays: settings.export_rays,
+        export_depth: Default::default(),
+        uncertainty,
+        adapter,
+    };
+    let mut sink = MemSink::default();
+    let summary = job
+        .finish(&opts, &mut sink, observer)
+        .await
+        .map_err(|e| ("after training".to_string(), e.to_string()))?;
+    // The held-out view at the end, with its uncertainty image when the pass ran.
+    if has_val {
+        let stem = silvr_core::job::stem(&job.trainer.data.images[job.trainer.data.val[0]].name);
+        let unc = sink
+            .0
+            .get(&format!("renders/{stem}_uncertainty.png"))
+            .cloned();
+        post_view(&mut job, unc).await?;
+    }
+    let mut result = TrainResult {
+        steps: summary.steps,
+        train_s: summary.train_s,
+        rays_per_s: summary.train_rays_per_s,
+        backend: summary.backend.to_string(),
+        heldout_psnr: summary.heldout_psnr_mean,
+        heldout_ssim: summary.heldout_ssim_mean,
+        held_out_views: summary.heldout.len(),
+        points: summary.exported,
+        kept: summary.uncertainty.as_ref().map(|u| u.kept),
+        threshold: summary.uncertainty.as_ref().map(|u| u.threshold),
+        log_std_quantiles: Vec::new(),
+        outputs: sink.0.keys().cloned().collect(),
+    };
+    if let Some(bytes) = sink.0.get("points.ply") {
+        if let Ok(cloud) = read_ply_bytes(bytes, "points.ply") {
+            if let Some(v) = cloud.scalar("log_std_combined") {
+                result.log_std_quantiles = quantiles(v, &[0.05, 0.25, 0.5, 0.75, 0.95]);
+            }
+        }
+        let source = format!("trained: {name}");
+        super::web::add_layer(studio, TRAINED_LAYER, bytes, "points.ply", &source);
+    }
+    SLOT.with(|s| s.borrow_mut().outputs = std::mem::take(&mut sink.0));
+    post(&ToPage::TrainDone { summary: result });
+    Ok(())
+}
+
+/// Nearest-rank quantiles of the finite values.
+fn quantiles(v: &[f32], qs: &[f64]) -> Vec<f32> {
+    let mut v: Vec<f32> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return Vec::new();
+    }
+    v.sort_by(f32::total_cmp);
+    qs.iter()
+        .map(|q| v[((v.len() - 1) as f64 * q).round() as usize])
+        .collect()
+}
+
+/// Renders the first held-out view and sends it beside its photo (PNG bytes, transferred).
+async fn post_view(job: &mut TrainJob, uncertainty: Option<Vec<u8>>) -> Result<(), Failure> {
+    let h = job
+        .held_out(0, false)
+        .await
+        .map_err(|e| ("held-out render".to_string(), e.to_string()))?;
+    let msg = js_sys::Object::new();
+    let set = |k: &str, v: &JsValue| {
+        js_sys::Reflect::set(&msg, &JsValue::from_str(k), v).ok();
+    };
+    let bytes = |b: &[u8]| {
+        let a = js_sys::Uint8Array::new_with_length(b.len() as u32);
+        a.copy_from(b);
+        a
+    };
+    set("type", &"train-view".into());
+    set("step", &JsValue::from(job.trainer.step));
+    set("name", &h.score.name.clone().into());
+    set("psnr", &JsValue::from(h.score.psnr));
+    set("render", &bytes(&h.rgb_png));
+    set("photo", &bytes(&h.photo_png));
+    if let Some(u) = uncertainty {
+        set("uncertainty", &bytes(&u));
+    }
+    if let Err(e) = scope().post_message(&msg) {
+        web_sys::console::error_2(&"silvr worker: postMessage failed".into(), &e);
+    }
+    Ok(())
+}
