@@ -1,14 +1,15 @@
 // The studio's view in headless Chromium (SwiftShader WebGPU) through playwright-core; the tests
-// themselves are in viewer.mjs, shared with Firefox.
+// themselves are in viewer.mjs and train.mjs, shared with Firefox.
 
 import { createRequire } from 'node:module';
 import { join } from 'node:path';
 import { ROOT, collectLog, viewerSuite } from './viewer.mjs';
+import { trainSuite } from './train.mjs';
 
 const { chromium } = createRequire(join(ROOT, 'web', 'package.json'))('playwright-core');
 const CHROMIUM = process.env.SILVR_CHROMIUM || '/usr/bin/chromium';
 
-viewerSuite({
+const driver = {
   name: 'Chromium',
   serve: true,
   launch: () =>
@@ -42,4 +43,7 @@ viewerSuite({
     await page.mouse.move(x1, y1, { steps: 5 });
     await page.mouse.up();
   },
-});
+};
+
+viewerSuite(driver);
+trainSuite(driver);

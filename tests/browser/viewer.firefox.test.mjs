@@ -5,6 +5,7 @@ import { createRequire } from 'node:module';
 import { existsSync } from 'node:fs';
 import { join } from 'node:path';
 import { ROOT, collectLog, viewerSuite } from './viewer.mjs';
+import { trainSuite } from './train.mjs';
 
 const puppeteer = createRequire(join(ROOT, 'web', 'package.json'))('puppeteer-core');
 const FIREFOX = process.env.SILVR_FIREFOX || '/usr/bin/firefox-esr';
@@ -12,7 +13,7 @@ if (!existsSync(FIREFOX)) {
   throw new Error(`no Firefox at ${FIREFOX} (scripts/setup.sh installs firefox-esr ≥ 141, or set SILVR_FIREFOX)`);
 }
 
-viewerSuite({
+const driver = {
   name: 'Firefox',
   serve: false,
   launch: () =>
@@ -42,4 +43,7 @@ viewerSuite({
     await page.mouse.move(x1, y1, { steps: 5 });
     await page.mouse.up();
   },
-});
+};
+
+viewerSuite(driver);
+trainSuite(driver);

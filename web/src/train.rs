@@ -8,7 +8,8 @@
 //!
 //! For tests, `#train-status` carries `data-state` (`idle`, `ready`, `loading`, `running`, `paused`,
 //! `stopping`, `finishing`, `done`, `failed`), `data-step`, `data-steps`, `data-loss`, `data-first-loss`,
-//! `data-psnr`, `data-rays-per-s`; `#train-result` the result as `data-result` (JSON); `#train-render`
+//! `data-loss-start` / `data-loss-recent` (means of the first and latest ten steps), `data-psnr`,
+//! `data-rays-per-s`; `#train-result` the result as `data-result` (JSON); `#train-render`
 //! the step of the view it shows (`data-step`); `#train-error` the last error.
 
 use std::cell::RefCell;
@@ -344,10 +345,17 @@ fn done_text() -> String {
 }
 
 pub fn on_step(r: StepReport) {
-    let first = CARD.with(|c| {
+    // Means of the first and the latest ten steps: one step's loss is noisy (its batch).
+    let (first, start, recent) = CARD.with(|c| {
         let mut c = c.borrow_mut();
         c.history.push(r);
-        c.history[0].loss
+        let h = &c.history;
+        let mean = |s: &[StepReport]| s.iter().map(|r| r.loss).sum::<f64>() / s.len().max(1) as f64;
+        (
+            h[0].loss,
+            mean(&h[..h.len().min(10)]),
+            mean(&h[h.len().saturating_sub(10)..]),
+        )
     });
     if let Some(s) = el::<HtmlElement>("train-status") {
         let set = |k: &str, v: String| {
@@ -357,6 +365,8 @@ pub fn on_step(r: StepReport) {
         set("data-steps", r.steps.to_string());
         set("data-loss", r.loss.to_string());
         set("data-first-loss", first.to_string());
+        set("data-loss-start", start.to_string());
+        set("data-loss-recent", recent.to_string());
         set("data-psnr", r.psnr.to_string());
         set("data-rays-per-s", r.rays_per_s.to_string());
         let state = CARD.with(|c| c.borrow().state.clone());

@@ -72,11 +72,12 @@ pub(crate) fn control(action: TrainAction) {
         };
         Some(*c)
     });
+    // `paused` and `running` are announced by the training loop once they hold (a step in flight
+    // finishes first), so the page never sees a step after `paused`.
     match now {
         None => fail("training", "no training run is in progress"),
-        Some(Control::Paused) => state("paused"),
-        Some(Control::Running) => state("running"),
         Some(Control::Stopping) => state("stopping"),
+        Some(_) => {}
     }
 }
 
@@ -259,14 +260,24 @@ async fn run_inner(
     let mut job = TrainJob::new(data, &settings.job, Backend::Wgpu(gpu))
         .map_err(|e| ("training".to_string(), e.to_string()))?;
     state("running");
+    let mut paused = false;
     while !job.done() {
         match SLOT.with(|s| s.borrow().control) {
             Some(Control::Stopping) | None => break,
             Some(Control::Paused) => {
+                if !paused {
+                    paused = true;
+                    state("paused");
+                }
                 sleep_ms(100).await;
                 continue;
             }
-            Some(Control::Running) => {}
+            Some(Control::Running) => {
+                if paused {
+                    paused = false;
+                    state("running");
+                }
+            }
         }
         let r = job
             .step()

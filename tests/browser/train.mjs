@@ -1,0 +1,168 @@
+// Training a submap in the studio's worker, end to end, written once for both browsers (the drivers in
+// viewer.*.test.mjs call `trainSuite` with the same driver as the view's tests).
+//
+// Fixtures (left in $SILVR_STUDIO_FIXTURES by the native test tests/tests/submap.rs): micro.tar (the micro
+// world packed by `silvr pack`), micro-native.json (the native WGSL run of the same submap with the same
+// settings: its train.json plus the point count and log-std quantiles), and broken archives.
+
+import { after, before, describe, test } from 'node:test';
+import assert from 'node:assert/strict';
+import { existsSync, readFileSync } from 'node:fs';
+import { join, resolve } from 'node:path';
+import { fileURLToPath } from 'node:url';
+import { serve } from './viewer.mjs';
+
+const ROOT = resolve(fileURLToPath(new URL('../..', import.meta.url)));
+const FIXTURES = process.env.SILVR_STUDIO_FIXTURES || join(ROOT, 'target', 'studio-fixtures');
+const STARTUP_TIMEOUT_MS = 120_000;
+const RUN_TIMEOUT_MS = 600_000;
+
+/** The run of tests/tests/submap.rs (native reference), as the studio's link presets it. */
+const BROWSER_RUN = 'steps=200&rays=256&model=tiny&downscale=2&export=4096&uncertainty=2&view-every=100&mode=silvr';
+/** Held-out PSNR of the browser run within this of the native WGSL run (dB; the issue's bound). */
+const PSNR_TOLERANCE_DB = 0.5;
+/** Exported points within this fraction of the native count (accumulation ≥ 0.98 is a sharp cut). */
+const POINTS_TOLERANCE = 0.25;
+/** log10-std quartiles (25, 50, 75 %) within this many decades of the native run's. */
+const QUANTILE_TOLERANCE = 0.6;
+
+export function trainSuite(driver) {
+  const ready = existsSync(join(ROOT, 'dist', 'index.html')) && existsSync(join(FIXTURES, 'micro.tar'));
+  describe(`studio training in ${driver.name}`, { timeout: 2 * RUN_TIMEOUT_MS }, () => {
+    let server, browser;
+    before(async () => {
+      if (!ready) {
+        throw new Error(
+          `needs dist/ (trunk build) and ${FIXTURES}/micro.tar (left by the native test tests/tests/submap.rs ` +
+            'when SILVR_STUDIO_FIXTURES is set): run scripts/test.sh',
+        );
+      }
+      server = await serve();
+      browser = await driver.launch();
+    });
+    after(async () => {
+      await driver.close(browser);
+      await server?.close();
+    });
+
+    const open = async (query) => {
+      const { page, log } = await driver.newPage(browser);
+      await driver.goto(page, `${server.base}/?${query}`);
+      // Long tasks on the main thread (Chromium has the Long Tasks API; Firefox does not).
+      await driver.evaluate(page, () => {
+        window.__long = { supported: false, tasks: [] };
+        try {
+          new PerformanceObserver((l) => {
+            for (const e of l.getEntries()) window.__long.tasks.push({ start: e.startTime, ms: e.duration });
+          }).observe({ type: 'longtask', buffered: true });
+          window.__long.supported = true;
+        } catch {}
+      });
+      await driver.waitFor(page, () => document.body.dataset.state !== 'loading', null, STARTUP_TIMEOUT_MS);
+      const state = await driver.evaluate(page, () => document.body.dataset.state);
+      assert.equal(state, 'ready', `studio state ${state}\n${log.join('\n')}`);
+      return { page, log };
+    };
+    const status = (page) => driver.evaluate(page, () => ({ ...document.querySelector('#train-status').dataset }));
+    const waitState = (page, states, timeout = RUN_TIMEOUT_MS) =>
+      driver.waitFor(page, (states) => states.includes(document.querySelector('#train-status').dataset.state), states, timeout);
+
+    test('a packed submap trains in the worker as natively: loss falls, pause/resume, held-out view, points and uncertainty, no long tasks', async () => {
+      const native = JSON.parse(readFileSync(join(FIXTURES, 'micro-native.json'), 'utf8'));
+      const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&${BROWSER_RUN}`);
+      await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.step || 0) >= 1, null, RUN_TIMEOUT_MS);
+      const t0 = await driver.evaluate(page, () => performance.now());
+      const wall0 = Date.now();
+      const adapter = await driver.evaluate(page, () => document.querySelector('#adapter').dataset.name);
+
+      // Pause: the step counter stops; resume: it moves on.
+      await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.step) >= 20, null, RUN_TIMEOUT_MS);
+      await driver.evaluate(page, () => document.querySelector('#train-pause').click());
+      await waitState(page, ['paused'], 60_000);
+      const paused = Number((await status(page)).step);
+      await new Promise((r) => setTimeout(r, 2500));
+      assert.equal(Number((await status(page)).step), paused, 'a paused run took steps');
+      await driver.evaluate(page, () => document.querySelector('#train-pause').click());
+      await driver.waitFor(page, (s) => Number(document.querySelector('#train-status').dataset.step) > s, paused, 60_000);
+
+      // The held-out view beside its photo, rendered at step 100.
+      await driver.waitFor(page, () => document.querySelector('#train-render').dataset.step === '100', null, RUN_TIMEOUT_MS);
+      assert.equal(await driver.evaluate(page, () => document.querySelector('#train-photo').hidden), false);
+
+      await waitState(page, ['done', 'failed']);
+      const t1 = await driver.evaluate(page, () => performance.now());
+      const s = await status(page);
+      assert.equal(s.state, 'done', `${await driver.evaluate(page, () => document.querySelector('#train-error').textContent)}\n${log.join('\n')}`);
+      assert.equal(s.step, '200');
+      const start = Number(s.lossStart);
+      const recent = Number(s.lossRecent);
+      assert.ok(recent < 0.6 * start, `loss fell from ${start} (first ten steps) to only ${recent} (last ten)`);
+
+      const r = JSON.parse(await driver.evaluate(page, () => document.querySelector('#train-result').dataset.result));
+      const nativePsnr = native.heldout_psnr_mean;
+      console.log(
+        `${driver.name} (${adapter}): 200 steps in ${r.train_s.toFixed(0)} s of training ` +
+          `(${((Date.now() - wall0) / 1000).toFixed(0)} s wall), ${r.rays_per_s.toFixed(0)} rays/s ` +
+          `(native WGSL ${native.train_rays_per_s.toFixed(0)}); held-out PSNR ${r.heldout_psnr.toFixed(2)} dB ` +
+          `(native ${nativePsnr.toFixed(2)}); ${r.points} points (native ${native.points_count}); log-std quantiles ` +
+          `${r.log_std_quantiles.map((q) => q.toFixed(2)).join(' ')} (native ${native.log_std_quantiles.map((q) => q.toFixed(2)).join(' ')})`,
+      );
+      assert.equal(r.backend, 'wgpu');
+      assert.ok(Math.abs(r.heldout_psnr - nativePsnr) <= PSNR_TOLERANCE_DB, `held-out PSNR ${r.heldout_psnr} vs native ${nativePsnr}`);
+      assert.equal(r.held_out_views, native.heldout.length);
+      assert.ok(Math.abs(r.points - native.points_count) <= POINTS_TOLERANCE * native.points_count, `${r.points} points vs native ${native.points_count}`);
+      assert.equal(r.log_std_quantiles.length, 5);
+      for (const k of [1, 2, 3]) {
+        const d = Math.abs(r.log_std_quantiles[k] - native.log_std_quantiles[k]);
+        assert.ok(d <= QUANTILE_TOLERANCE, `log-std quantile ${k}: ${r.log_std_quantiles[k]} vs native ${native.log_std_quantiles[k]}`);
+      }
+      assert.ok(r.kept > 0 && r.kept <= r.points);
+      assert.ok(r.outputs.includes('checkpoint.ckpt') && r.outputs.includes('points_filtered.ply'));
+      // The uncertainty image of the held-out view is shown at the end.
+      assert.equal(await driver.evaluate(page, () => document.querySelector('#train-uncertainty').hidden), false);
+      // The trained points are a layer of the view.
+      await driver.waitFor(page, () => [...document.querySelectorAll('#layers li')].some((l) => l.textContent.includes('points.ply')), null, 60_000);
+      // An output downloads.
+      await driver.evaluate(page, () => document.querySelector('#train-result button[data-output="points.ply"]').click());
+      await driver.waitFor(page, () => [...document.querySelectorAll('#view-messages li')].some((l) => l.textContent.includes('Downloaded points.ply')), null, 60_000);
+
+      // The main thread stayed free while the worker trained.
+      const long = await driver.evaluate(page, () => window.__long);
+      if (long.supported) {
+        const during = long.tasks.filter((t) => t.start >= t0 && t.start <= t1);
+        console.log(`${driver.name}: ${during.length} main-thread long tasks during training (${during.map((t) => t.ms.toFixed(0)).join(', ')} ms)`);
+        assert.deepEqual(during.filter((t) => t.ms > 50), [], 'long tasks over 50 ms while training');
+      } else {
+        console.log(`${driver.name}: no Long Tasks API; main-thread responsiveness is checked in Chromium`);
+      }
+      const errors = log.filter((l) => l.startsWith('[pageerror]'));
+      assert.deepEqual(errors, [], log.join('\n'));
+      await page.close();
+    });
+
+    for (const [file, expect] of [
+      ['corrupt-image.tar', /images\/cam_left\/00003\.png.*(cannot read image|not a readable)/],
+      ['no-transforms.tar', /no-transforms\.tar.*no transforms\.json/],
+      ['missing-lidar.tar', /lidar_depth\/cam_front\/00002\.png.*missing/],
+      ['not.ply', /not\.ply.*(tar|archive)/],
+    ]) {
+      test(`a broken submap (${file}) names the file; the studio keeps working`, async () => {
+        const { page, log } = await open(`train=${encodeURIComponent(`/data/${file}`)}&${BROWSER_RUN}`);
+        await waitState(page, ['failed', 'done'], 120_000);
+        const s = await status(page);
+        const error = await driver.evaluate(page, () => document.querySelector('#train-error').textContent);
+        assert.equal(s.state, 'failed', error);
+        assert.match(error, expect);
+        assert.equal(await driver.evaluate(page, () => document.body.dataset.state), 'ready');
+        // The worker lives on: the kernel self-check runs again and passes.
+        await driver.waitFor(page, () => !document.querySelector('#rerun').disabled, null, 60_000);
+        await driver.evaluate(page, () => document.querySelector('#rerun').click());
+        await driver.waitFor(page, () => document.querySelector('#projection').dataset.runs === '2', null, 120_000);
+        assert.equal(await driver.evaluate(page, () => document.querySelector('#projection').dataset.passed), 'true');
+        const errors = log.filter((l) => l.startsWith('[pageerror]'));
+        assert.deepEqual(errors, [], log.join('\n'));
+        await page.close();
+      });
+    }
+  });
+}
