@@ -36,6 +36,7 @@ const driver = {
   goto: (page, url) => page.goto(url, { waitUntil: 'load' }),
   waitFor: (page, fn, arg, timeout) => page.waitForFunction(fn, arg, { timeout }),
   evaluate: (page, fn, arg) => page.evaluate(fn, arg),
+  upload: (page, selector, path) => page.setInputFiles(selector, path),
   screenshot: (page, selector) => page.locator(selector).screenshot(),
   drag: async (page, x0, y0, x1, y1) => {
     await page.mouse.move(x0, y0);

@@ -36,6 +36,7 @@ const driver = {
   goto: (page, url) => page.goto(url, { waitUntil: 'load' }),
   waitFor: (page, fn, arg, timeout) => page.waitForFunction(fn, { timeout, polling: 100 }, arg),
   evaluate: (page, fn, arg) => page.evaluate(fn, arg),
+  upload: async (page, selector, path) => (await page.$(selector)).uploadFile(path),
   screenshot: async (page, selector) => Buffer.from(await (await page.$(selector)).screenshot()),
   drag: async (page, x0, y0, x1, y1) => {
     await page.mouse.move(x0, y0);

@@ -157,6 +157,12 @@ fn packed_submap_trains_on_wgsl_like_its_folder_and_leaves_the_browser_fixtures(
     let dir = std::path::PathBuf::from(dir);
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::copy(&tar, dir.join("micro.tar")).unwrap();
+    // The native checkpoint the browser continues (a field trained natively goes on in the browser).
+    std::fs::copy(
+        native.join("checkpoint.ckpt"),
+        dir.join("micro-native.ckpt"),
+    )
+    .unwrap();
     let mut reference = report.clone();
     reference["points_count"] = cloud.len().into();
     reference["log_std_quantiles"] = q.into();

@@ -193,6 +193,8 @@ fn on_worker_message(page: &Shared, msg: ToPage) {
         } => crate::train::on_progress(&stage, done, total, eta_s),
         ToPage::TrainDone { summary } => crate::train::on_done(summary),
         ToPage::TrainError { source, message } => crate::train::on_error(&source, &message),
+        ToPage::TrainSaved { step } => crate::train::on_saved(step),
+        ToPage::TrainSavedRun { run } => crate::train::on_saved_run(run),
         ToPage::Frame { n, ms, points, seq } => crate::viewer::on_frame(n, ms, points, seq),
         ToPage::Bench {
             frames,

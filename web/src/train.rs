@@ -4,10 +4,11 @@
 //! open in the view, its outputs download.
 //!
 //! Query keys preset the form: `steps`, `rays`, `model`, `mode`, `downscale`, `export`, `uncertainty`,
-//! `view-every`.
+//! `view-every`, `checkpoint-every`.
 //!
 //! For tests, `#train-status` carries `data-state` (`idle`, `ready`, `loading`, `running`, `paused`,
-//! `stopping`, `finishing`, `done`, `failed`), `data-step`, `data-steps`, `data-loss`, `data-first-loss`,
+//! `stopping`, `finishing`, `done`, `failed`), `data-step`, `data-steps`, `data-loss`, `data-first-step` / `data-first-loss` (this session's first
+//! step: after a resume, the checkpoint's step + 1), `data-saved-step`,
 //! `data-loss-start` / `data-loss-recent` (means of the first and latest ten steps), `data-psnr`,
 //! `data-rays-per-s`; `#train-result` the result as `data-result` (JSON); `#train-render`
 //! the step of the view it shows (`data-step`); `#train-error` the last error.
@@ -37,6 +38,10 @@ struct Card {
     state: String,
     next_id: u32,
     outputs: Vec<String>,
+    /// A checkpoint to continue (`silvr train`'s or one downloaded from the studio).
+    checkpoint: Option<File>,
+    /// `?train=URL`, started once the worker says no saved run waits.
+    pending_url: Option<String>,
 }
 
 thread_local! {
@@ -93,9 +98,90 @@ pub fn start() {
             })
         });
     }
+    if let Some(input) = el::<HtmlInputElement>("train-checkpoint") {
+        let i2 = input.clone();
+        listen(&input, "change", move |_: Event| {
+            let f = i2.files().and_then(|l| l.get(0));
+            CARD.with(|c| c.borrow_mut().checkpoint = f);
+        });
+    }
+    if let Some(b) = el::<HtmlButtonElement>("train-resume") {
+        listen(&b, "click", |_: Event| resume_saved());
+    }
+    if let Some(b) = el::<HtmlButtonElement>("train-save") {
+        listen(&b, "click", |_: Event| {
+            let id = next_id();
+            post(&FromPage::TrainDownload {
+                id,
+                name: "checkpoint.ckpt".into(),
+            });
+        });
+    }
     let _ = doc;
-    if let Some(url) = query_train_url() {
-        start_run(Some(url));
+    let url = query_train_url();
+    CARD.with(|c| c.borrow_mut().pending_url = url);
+    // A run saved before a reload is offered first; `?train=` starts once the worker says there is none.
+    post(&FromPage::TrainQuerySaved);
+}
+
+fn next_id() -> u32 {
+    CARD.with(|c| {
+        let mut c = c.borrow_mut();
+        c.next_id += 1;
+        c.next_id
+    })
+}
+
+/// The worker's answer to `train-query-saved`.
+pub fn on_saved_run(run: Option<silvr_worker::SavedRun>) {
+    let pending = CARD.with(|c| c.borrow_mut().pending_url.take());
+    match run {
+        Some(r) => {
+            if let Some(b) = el::<HtmlButtonElement>("train-resume") {
+                b.set_text_content(Some(&format!(
+                    "Resume {} at step {} of {}",
+                    r.source, r.step, r.settings.job.steps
+                )));
+                b.set_hidden(false);
+                b.set_disabled(false);
+                b.set_attribute("data-step", &r.step.to_string()).ok();
+            }
+            status(
+                "saved",
+                &format!(
+                    "A run of {} was saved at step {}: resume it, or choose a submap to start over.",
+                    r.source, r.step
+                ),
+            );
+        }
+        None => {
+            if let Some(url) = pending {
+                start_run(Some(url));
+            }
+        }
+    }
+}
+
+fn resume_saved() {
+    CARD.with(|c| c.borrow_mut().history.clear());
+    if let Some(b) = el::<HtmlButtonElement>("train-resume") {
+        b.set_disabled(true);
+        b.set_hidden(true);
+    }
+    draw_chart(true);
+    status("loading", "Reading the saved run…");
+    post(&FromPage::TrainResumeSaved { id: next_id() });
+}
+
+/// A checkpoint was saved in the browser's storage.
+pub fn on_saved(step: u32) {
+    if let Some(s) = el::<HtmlElement>("train-status") {
+        s.set_attribute("data-saved-step", &step.to_string()).ok();
+    }
+    if let Some(n) = el::<HtmlElement>("train-saved") {
+        n.set_text_content(Some(&format!(
+            "Checkpoint saved in this browser at step {step}: a reload offers to resume from it."
+        )));
     }
 }
 
@@ -120,6 +206,7 @@ fn query_train_url() -> Option<String> {
             "uncertainty" => "train-unc",
             "view-every" => "train-view-every",
             "downscale" => "train-downscale",
+            "checkpoint-every" => "train-ckpt-every",
             "export" => "train-export",
             "model" => "train-model",
             "mode" => "train-mode",
@@ -180,6 +267,7 @@ fn settings() -> Result<TrainSettings, String> {
             seed: 1,
             depth_sigma: None,
         },
+        checkpoint_every: num("train-ckpt-every", "Checkpoint every")?.min(u32::MAX as u64) as u32,
         downscale: num("train-downscale", "Downscale")?.min(u32::MAX as u64) as u32,
         view_every: num("train-view-every", "Held-out view every")?.min(u32::MAX as u64) as u32,
         export_rays: num("train-export", "Export rays")? as usize,
@@ -249,6 +337,9 @@ fn start_run(url: Option<String>) {
             }
             set("files", &files);
             set("paths", &paths);
+            if let Some(ck) = CARD.with(|c| c.borrow().checkpoint.clone()) {
+                set("checkpoint", &ck);
+            }
             match s.serialize(&serde_wasm_bindgen::Serializer::json_compatible()) {
                 Ok(v) => set("settings", &v),
                 Err(e) => return error(&format!("Could not encode the settings: {e}")),
@@ -280,6 +371,7 @@ fn status(state: &str, text: &str) {
     let running = matches!(state, "running" | "paused");
     enable("train-pause", running);
     enable("train-stop", running);
+    enable("train-save", state == "paused");
     if let Some(b) = el::<HtmlButtonElement>("train-pause") {
         b.set_text_content(Some(if state == "paused" { "Resume" } else { "Pause" }));
     }
@@ -352,7 +444,7 @@ pub fn on_step(r: StepReport) {
         let h = &c.history;
         let mean = |s: &[StepReport]| s.iter().map(|r| r.loss).sum::<f64>() / s.len().max(1) as f64;
         (
-            h[0].loss,
+            h[0],
             mean(&h[..h.len().min(10)]),
             mean(&h[h.len().saturating_sub(10)..]),
         )
@@ -364,7 +456,8 @@ pub fn on_step(r: StepReport) {
         set("data-step", r.step.to_string());
         set("data-steps", r.steps.to_string());
         set("data-loss", r.loss.to_string());
-        set("data-first-loss", first.to_string());
+        set("data-first-loss", first.loss.to_string());
+        set("data-first-step", first.step.to_string());
         set("data-loss-start", start.to_string());
         set("data-loss-recent", recent.to_string());
         set("data-psnr", r.psnr.to_string());

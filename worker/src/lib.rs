@@ -203,6 +203,10 @@ pub enum ToPage {
     TrainDone { summary: TrainResult },
     /// The run could not start or stopped: the source or stage, and the problem.
     TrainError { source: String, message: String },
+    /// A checkpoint of the run was saved in the origin-private file system (every N steps, on pause).
+    TrainSaved { step: u32 },
+    /// Answer to `train-query-saved`: the run saved in this origin (to resume after a reload), if any.
+    TrainSavedRun { run: Option<SavedRun> },
     Error {
         id: Option<u32>,
         stage: Stage,
@@ -256,14 +260,32 @@ pub enum FromPage {
     },
     /// `pause`, `resume` or `stop` (stop still renders, exports and runs the uncertainty pass).
     TrainControl { action: TrainAction },
-    /// One of the finished run's outputs (`points.ply`, `checkpoint.ckpt`, …) as a download.
+    /// One of the finished run's outputs (`points.ply`, `checkpoint.ckpt`, …) as a download; while a
+    /// run is paused, its checkpoint.
     TrainDownload { id: u32, name: String },
+    /// Is there a run saved in this origin's private file system?
+    TrainQuerySaved,
+    /// Resume the saved run (its dataset and checkpoint come from the origin-private file system).
+    TrainResumeSaved { id: u32 },
+}
+
+/// A run saved in the origin-private file system: what the page offers to resume.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SavedRun {
+    /// The dataset as the user gave it (archive, folder or URL).
+    pub source: String,
+    pub settings: TrainSettings,
+    /// Step of the saved checkpoint.
+    pub step: u32,
 }
 
 /// What the page's training form sets.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TrainSettings {
     pub job: silvr_core::job::JobSpec,
+    /// A checkpoint is saved in the origin-private file system every this many steps (0: on pause only).
+    #[serde(default = "default_checkpoint_every")]
+    pub checkpoint_every: u32,
     /// Integer image downscale (1 = full size), as `silvr train --downscale`.
     #[serde(default = "one")]
     pub downscale: u32,
@@ -280,6 +302,9 @@ pub struct TrainSettings {
     pub uncertainty_rays: usize,
 }
 
+fn default_checkpoint_every() -> u32 {
+    100
+}
 fn one() -> u32 {
     1
 }
@@ -364,11 +389,13 @@ impl FromPage {
             | FromPage::Download { id, .. }
             | FromPage::Bench { id, .. }
             | FromPage::TrainUrl { id, .. }
-            | FromPage::TrainDownload { id, .. } => Some(*id),
+            | FromPage::TrainDownload { id, .. }
+            | FromPage::TrainResumeSaved { id } => Some(*id),
             FromPage::Resize { .. }
             | FromPage::View { .. }
             | FromPage::DebugLoseDevice
-            | FromPage::TrainControl { .. } => None,
+            | FromPage::TrainControl { .. }
+            | FromPage::TrainQuerySaved => None,
         }
     }
 }

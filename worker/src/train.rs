@@ -17,9 +17,17 @@ use silvr_core::uncertainty::UncertaintyConfig;
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
-use super::web::{js_text, post, post_bytes, read_stream, scope, sleep_ms, Studio};
+use super::web::{get, js_text, post, post_bytes, read_stream, scope, sleep_ms, Studio};
 use crate::view::is_fetchable;
-use crate::{ToPage, TrainAction, TrainResult, TrainSettings};
+use crate::{SavedRun, ToPage, TrainAction, TrainResult, TrainSettings};
+use silvr_core::train::checkpoint::Checkpoint;
+use std::path::Path;
+
+/// Names in the origin-private file system (folder `silvr-train`): the run's dataset as an archive,
+/// its latest checkpoint (the native format) and what the page needs to offer resuming it.
+const DATASET: &str = "dataset.tar";
+const CHECKPOINT: &str = "checkpoint.ckpt";
+const RUN: &str = "run.json";
 
 /// The layer number the trained points take in the view (the page numbers its own sources from 0).
 pub const TRAINED_LAYER: u32 = 1000;
@@ -98,6 +106,7 @@ pub(crate) async fn train_files(
     studio: Rc<RefCell<Studio>>,
     id: u32,
     files: Vec<(String, web_sys::File)>,
+    checkpoint: Option<web_sys::File>,
     settings: TrainSettings,
 ) {
     let name = match files.as_slice() {
@@ -133,7 +142,14 @@ pub(crate) async fn train_files(
             return fail(path, e.to_string());
         }
     }
-    run(studio, id, out, settings).await
+    let resume = match checkpoint {
+        Some(f) => match read_stream(f.stream(), Some(f.size()), id, &f.name()).await {
+            Ok(b) => Some(b),
+            Err(e) => return fail(&f.name(), e),
+        },
+        None => None,
+    };
+    run(studio, id, out, settings, resume).await
 }
 
 /// A dataset archive fetched over http(s) → a training run.
@@ -190,12 +206,18 @@ pub(crate) async fn train_url(
         .unwrap_or("submap.tar")
         .to_string();
     match Files::from_tar(&name, &bytes) {
-        Ok(files) => run(studio, id, files, settings).await,
+        Ok(files) => run(studio, id, files, settings, None).await,
         Err(e) => fail(&url, e.to_string()),
     }
 }
 
-async fn run(studio: Rc<RefCell<Studio>>, id: u32, files: Files, settings: TrainSettings) {
+async fn run(
+    studio: Rc<RefCell<Studio>>,
+    id: u32,
+    files: Files,
+    settings: TrainSettings,
+    resume: Option<Vec<u8>>,
+) {
     if let Err(e) = settings.validate() {
         return fail("the training settings", e);
     }
@@ -215,7 +237,7 @@ async fn run(studio: Rc<RefCell<Studio>>, id: u32, files: Files, settings: Train
             "a training run is already in progress: stop it first",
         );
     }
-    let result = run_inner(&studio, id, files, &settings).await;
+    let result = run_inner(&studio, id, files, &settings, resume).await;
     SLOT.with(|s| s.borrow_mut().control = None);
     match result {
         Ok(()) => state("done"),
@@ -233,17 +255,31 @@ async fn run_inner(
     id: u32,
     files: Files,
     settings: &TrainSettings,
+    resume: Option<Vec<u8>>,
 ) -> Result<(), Failure> {
     let name = files.name.clone();
     let files = files
         .rooted_at_transforms()
         .map_err(|e| (name.clone(), e.to_string()))?;
+    let checkpoint = match &resume {
+        Some(bytes) => Some(
+            Checkpoint::from_bytes(bytes, Path::new("the checkpoint"))
+                .map_err(|e| ("the checkpoint".to_string(), e.to_string()))?,
+        ),
+        None => None,
+    };
     let opts = LoadOptions {
         downscale: settings.downscale,
         skip_lidar: settings.job.mode == Mode::Vision,
     };
     let data = TrainData::load_from(&files, "transforms.json", &opts)
         .map_err(|e| (name.clone(), e.to_string()))?;
+    // The dataset is kept in the origin-private file system beside the checkpoints, so a reload can
+    // resume without the user dropping the files again.
+    let saved = opfs::write(DATASET, &files.to_tar()).await;
+    if let Err(e) = &saved {
+        log::warn!("the dataset could not be kept for resuming after a reload: {e}");
+    }
     drop(files);
     post(&ToPage::TrainLoaded {
         id,
@@ -257,9 +293,32 @@ async fn run_inner(
     let has_val = !data.val.is_empty();
     let gpu = studio.borrow().gpu.clone();
     let adapter = gpu.report().to_string();
-    let mut job = TrainJob::new(data, &settings.job, Backend::Wgpu(gpu))
-        .map_err(|e| ("training".to_string(), e.to_string()))?;
+    let mut job = match checkpoint {
+        Some(ck) => {
+            if ck.header.step >= settings.job.steps {
+                return Err((
+                    "the checkpoint".into(),
+                    format!(
+                        "it is at step {}; ask for more steps than that to continue it",
+                        ck.header.step
+                    ),
+                ));
+            }
+            TrainJob::resume(data, ck, Backend::Wgpu(gpu), settings.job.steps)
+        }
+        None => TrainJob::new(data, &settings.job, Backend::Wgpu(gpu)),
+    }
+    .map_err(|e| ("training".to_string(), e.to_string()))?;
+    SLOT.with(|s| s.borrow_mut().step = (job.trainer.step, settings.job.steps));
     state("running");
+    let save = |job: &mut TrainJob| {
+        let meta = SavedRun {
+            source: name.clone(),
+            settings: settings.clone(),
+            step: job.trainer.step,
+        };
+        (meta, saved.is_ok())
+    };
     let mut paused = false;
     while !job.done() {
         match SLOT.with(|s| s.borrow().control) {
@@ -267,6 +326,8 @@ async fn run_inner(
             Some(Control::Paused) => {
                 if !paused {
                     paused = true;
+                    let (meta, keep) = save(&mut job);
+                    checkpoint_to_opfs(&mut job, meta, keep).await?;
                     state("paused");
                 }
                 sleep_ms(100).await;
@@ -285,6 +346,10 @@ async fn run_inner(
             .map_err(|e| ("training".to_string(), e.to_string()))?;
         SLOT.with(|s| s.borrow_mut().step = (r.step, r.steps));
         post(&ToPage::TrainStep { report: r });
+        if settings.checkpoint_every > 0 && r.step % settings.checkpoint_every == 0 && !job.done() {
+            let (meta, keep) = save(&mut job);
+            checkpoint_to_opfs(&mut job, meta, keep).await?;
+        }
         if has_val && settings.view_every > 0 && r.step % settings.view_every == 0 && !job.done() {
             post_view(&mut job, None).await?;
         }
@@ -352,6 +417,8 @@ async fn run_inner(
         super::web::add_layer(studio, TRAINED_LAYER, bytes, "points.ply", &source);
     }
     SLOT.with(|s| s.borrow_mut().outputs = std::mem::take(&mut sink.0));
+    // A finished run is not offered for resuming; its outputs stay downloadable.
+    opfs::clear().await;
     post(&ToPage::TrainDone { summary: result });
     Ok(())
 }
@@ -396,4 +463,154 @@ async fn post_view(job: &mut TrainJob, uncertainty: Option<Vec<u8>>) -> Result<(
         web_sys::console::error_2(&"silvr worker: postMessage failed".into(), &e);
     }
     Ok(())
+}
+
+/// Saves the run's checkpoint (and what resuming needs) in the origin-private file system, keeps it as
+/// the `checkpoint.ckpt` download, and tells the page. A failed save is reported, and training goes on.
+async fn checkpoint_to_opfs(job: &mut TrainJob, meta: SavedRun, keep: bool) -> Result<(), Failure> {
+    let bytes = job
+        .checkpoint_bytes()
+        .await
+        .map_err(|e| ("checkpoint".to_string(), e.to_string()))?;
+    let step = meta.step;
+    if keep {
+        let meta_json = serde_json_bytes(&meta);
+        let r = match opfs::write(CHECKPOINT, &bytes).await {
+            Ok(()) => opfs::write(RUN, &meta_json).await,
+            Err(e) => Err(e),
+        };
+        match r {
+            Ok(()) => post(&ToPage::TrainSaved { step }),
+            Err(e) => fail(
+                "checkpoint",
+                format!("could not be saved in the browser's storage ({e}); training goes on"),
+            ),
+        }
+    }
+    SLOT.with(|s| {
+        s.borrow_mut()
+            .outputs
+            .insert("checkpoint.ckpt".into(), bytes)
+    });
+    Ok(())
+}
+
+fn serde_json_bytes(meta: &SavedRun) -> Vec<u8> {
+    let v = serde_wasm_bindgen::to_value(meta).unwrap_or(JsValue::NULL);
+    js_sys::JSON::stringify(&v)
+        .ok()
+        .and_then(|s| s.as_string())
+        .unwrap_or_default()
+        .into_bytes()
+}
+
+/// Tells the page whether a run is saved in this origin.
+pub(crate) async fn query_saved() {
+    post(&ToPage::TrainSavedRun {
+        run: saved_run().await,
+    });
+}
+
+async fn saved_run() -> Option<SavedRun> {
+    let bytes = opfs::read(RUN).await.ok().flatten()?;
+    let text = String::from_utf8(bytes).ok()?;
+    let v = js_sys::JSON::parse(&text).ok()?;
+    let run: SavedRun = serde_wasm_bindgen::from_value(v).ok()?;
+    // Only a run whose checkpoint and dataset are both there.
+    let has = |n: &'static str| async move { opfs::read(n).await.ok().flatten().is_some() };
+    (has(CHECKPOINT).await && has(DATASET).await).then_some(run)
+}
+
+/// Resumes the run saved in this origin (after a reload, or a new worker).
+pub(crate) async fn resume_saved(studio: Rc<RefCell<Studio>>, id: u32) {
+    let Some(meta) = saved_run().await else {
+        return fail("the saved run", "no run is saved in this browser's storage");
+    };
+    state("loading");
+    let (dataset, ck) = match (opfs::read(DATASET).await, opfs::read(CHECKPOINT).await) {
+        (Ok(Some(d)), Ok(Some(c))) => (d, c),
+        (Err(e), _) | (_, Err(e)) => return fail("the saved run", e),
+        _ => return fail("the saved run", "its dataset or checkpoint is gone"),
+    };
+    match Files::from_tar(&meta.source, &dataset) {
+        Ok(files) => run(studio, id, files, meta.settings, Some(ck)).await,
+        Err(e) => fail("the saved run", e.to_string()),
+    }
+}
+
+/// The origin-private file system, through its JS API (called by name: web-sys gates these types
+/// behind unstable flags). Writes go through `createWritable`, which commits on `close`: a reload or a
+/// crash mid-write leaves the previous file.
+mod opfs {
+    use super::*;
+
+    async fn call(obj: &JsValue, method: &str, args: &[JsValue]) -> Result<JsValue, String> {
+        let f: js_sys::Function = get(obj, method)
+            .dyn_into()
+            .map_err(|_| format!("{method} is not available"))?;
+        let r = match args {
+            [] => f.call0(obj),
+            [a] => f.call1(obj, a),
+            [a, b] => f.call2(obj, a, b),
+            _ => unreachable!("at most two arguments"),
+        }
+        .map_err(|e| js_text(&e))?;
+        if r.has_type::<js_sys::Promise>() {
+            wasm_bindgen_futures::JsFuture::from(js_sys::Promise::from(r))
+                .await
+                .map_err(|e| js_text(&e))
+        } else {
+            Ok(r)
+        }
+    }
+
+    async fn dir() -> Result<JsValue, String> {
+        let storage = get(&get(&js_sys::global(), "navigator"), "storage");
+        if storage.is_undefined() {
+            return Err("this browser gives workers no storage (navigator.storage)".into());
+        }
+        let root = call(&storage, "getDirectory", &[]).await?;
+        let opts = js_sys::Object::new();
+        js_sys::Reflect::set(&opts, &"create".into(), &true.into()).ok();
+        call(
+            &root,
+            "getDirectoryHandle",
+            &["silvr-train".into(), opts.into()],
+        )
+        .await
+    }
+
+    pub async fn write(name: &str, bytes: &[u8]) -> Result<(), String> {
+        let d = dir().await?;
+        let opts = js_sys::Object::new();
+        js_sys::Reflect::set(&opts, &"create".into(), &true.into()).ok();
+        let h = call(&d, "getFileHandle", &[name.into(), opts.into()]).await?;
+        let w = call(&h, "createWritable", &[]).await?;
+        let a = js_sys::Uint8Array::new_with_length(bytes.len() as u32);
+        a.copy_from(bytes);
+        if let Err(e) = call(&w, "write", &[a.into()]).await {
+            let _ = call(&w, "abort", &[]).await;
+            return Err(e);
+        }
+        call(&w, "close", &[]).await.map(|_| ())
+    }
+
+    /// `Ok(None)` when the file does not exist.
+    pub async fn read(name: &str) -> Result<Option<Vec<u8>>, String> {
+        let d = dir().await?;
+        let Ok(h) = call(&d, "getFileHandle", &[name.into()]).await else {
+            return Ok(None);
+        };
+        let file = call(&h, "getFile", &[]).await?;
+        let buf = call(&file, "arrayBuffer", &[]).await?;
+        Ok(Some(js_sys::Uint8Array::new(&buf).to_vec()))
+    }
+
+    pub async fn clear() {
+        if let Ok(d) = dir().await {
+            for n in [RUN, CHECKPOINT, DATASET] {
+                let _ = call(&d, "removeEntry", &[n.into()]).await;
+            }
+        }
+    }
 }

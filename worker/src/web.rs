@@ -157,7 +157,7 @@ fn message_id(data: &JsValue) -> Option<u32> {
         .map(|v| v as u32)
 }
 
-fn get(obj: &JsValue, key: &str) -> JsValue {
+pub(crate) fn get(obj: &JsValue, key: &str) -> JsValue {
     js_sys::Reflect::get(obj, &JsValue::from_str(key)).unwrap_or(JsValue::UNDEFINED)
 }
 
@@ -200,10 +200,12 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
                     Some((p, f))
                 })
                 .collect();
+            let checkpoint = get(&data, "checkpoint").dyn_into::<web_sys::File>().ok();
             spawn_local(crate::train::train_files(
                 studio.clone(),
                 id,
                 files,
+                checkpoint,
                 settings,
             ));
             return;
@@ -283,6 +285,10 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
         }
         FromPage::TrainControl { action } => crate::train::control(action),
         FromPage::TrainDownload { id, name } => crate::train::download(id, &name),
+        FromPage::TrainQuerySaved => spawn_local(crate::train::query_saved()),
+        FromPage::TrainResumeSaved { id } => {
+            spawn_local(crate::train::resume_saved(studio.clone(), id))
+        }
         FromPage::DebugLoseDevice => {
             let gpu = studio.borrow().gpu.clone();
             gpu.device.destroy();
