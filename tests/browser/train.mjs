@@ -186,6 +186,27 @@ export function trainSuite(driver) {
       await p2.close();
     });
 
+    test('a lost GPU device mid-training: a message, a new device, the run goes on from its checkpoint', async () => {
+      const run = BROWSER_RUN.replace('steps=200', 'steps=70').replace('uncertainty=2', 'uncertainty=0');
+      const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&${run}&checkpoint-every=20`);
+      await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.savedStep || 0) >= 20, null, RUN_TIMEOUT_MS);
+      const saved = Number((await status(page)).savedStep);
+      await driver.evaluate(page, () => document.querySelector('#view').dispatchEvent(new CustomEvent('silvr-lose-device')));
+      await driver.waitFor(page, () => /device was lost/.test(document.querySelector('#train-error').textContent), null, 120_000);
+      const message = await driver.evaluate(page, () => document.querySelector('#train-error').textContent);
+      assert.match(message, /goes on on a new device from the checkpoint at step \d+/);
+      const from = Number(message.match(/checkpoint at step (\d+)/)[1]);
+      assert.ok(from >= saved, `resumed from step ${from}, the page had seen a save at ${saved}`);
+      await waitState(page, ['done', 'failed']);
+      const s = await status(page);
+      assert.equal(s.state, 'done', await driver.evaluate(page, () => document.querySelector('#train-error').textContent));
+      assert.equal(Number(s.firstStep), from + 1, 'the chart restarts at the checkpoint');
+      assert.equal(s.step, '70');
+      console.log(`${driver.name}: device lost after step ${saved}+; resumed from the checkpoint at step ${from} on a new device and finished`);
+      assert.deepEqual(log.filter((x) => x.startsWith('[pageerror]')), [], log.join('\n'));
+      await page.close();
+    });
+
     for (const [file, expect] of [
       ['corrupt-image.tar', /images\/cam_left\/00003\.png.*(cannot read image|not a readable)/],
       ['no-transforms.tar', /no-transforms\.tar.*no transforms\.json/],

@@ -425,6 +425,11 @@ pub fn on_state(state: &str, step: u32, steps: u32) {
         ),
         "done" => return status("done", &done_text()),
         "failed" => "The run stopped; see the message below.".to_string(),
+        // After a device loss: the run goes on from its checkpoint, the chart with it.
+        "resumed" => {
+            CARD.with(|c| c.borrow_mut().history.clear());
+            return status("running", &format!("Training resumed at step {step} of {steps}…"));
+        }
         other => other.to_string(),
     };
     status(state, &text);

@@ -258,10 +258,11 @@ async fn run_inner(
     resume: Option<Vec<u8>>,
 ) -> Result<(), Failure> {
     let name = files.name.clone();
+    let resume_bytes = resume;
     let files = files
         .rooted_at_transforms()
         .map_err(|e| (name.clone(), e.to_string()))?;
-    let checkpoint = match &resume {
+    let checkpoint = match &resume_bytes {
         Some(bytes) => Some(
             Checkpoint::from_bytes(bytes, Path::new("the checkpoint"))
                 .map_err(|e| ("the checkpoint".to_string(), e.to_string()))?,
@@ -293,6 +294,14 @@ async fn run_inner(
     let has_val = !data.val.is_empty();
     let gpu = studio.borrow().gpu.clone();
     let adapter = gpu.report().to_string();
+    if let Some(bytes) = resume_bytes {
+        // The run's own checkpoint until it saves a newer one (what a device loss resumes from).
+        SLOT.with(|s| {
+            s.borrow_mut()
+                .outputs
+                .insert("checkpoint.ckpt".into(), bytes)
+        });
+    }
     let mut job = match checkpoint {
         Some(ck) => {
             if ck.header.step >= settings.job.steps {
@@ -320,6 +329,7 @@ async fn run_inner(
         (meta, saved.is_ok())
     };
     let mut paused = false;
+    let mut recoveries = 0;
     while !job.done() {
         match SLOT.with(|s| s.borrow().control) {
             Some(Control::Stopping) | None => break,
@@ -340,10 +350,17 @@ async fn run_inner(
                 }
             }
         }
-        let r = job
-            .step()
-            .await
-            .map_err(|e| ("training".to_string(), e.to_string()))?;
+        let r = match job.step().await {
+            Ok(r) => r,
+            // A lost device (a driver reset, a GPU process crash, the tab's device destroyed): a new
+            // device, and the run goes on from its last checkpoint.
+            Err(e) if recoveries < MAX_RECOVERIES && device_problem(&e) => {
+                recoveries += 1;
+                job = recover(job, settings, &e.to_string()).await?;
+                continue;
+            }
+            Err(e) => return Err(("training".to_string(), e.to_string())),
+        };
         SLOT.with(|s| s.borrow_mut().step = (r.step, r.steps));
         post(&ToPage::TrainStep { report: r });
         if settings.checkpoint_every > 0 && r.step % settings.checkpoint_every == 0 && !job.done() {
@@ -613,4 +630,57 @@ mod opfs {
             }
         }
     }
+}
+
+/// Device losses a run survives before it gives up.
+const MAX_RECOVERIES: u32 = 3;
+
+/// Errors a new device may cure (not bad input or a diverged loss).
+fn device_problem(e: &silvr_core::job::JobError) -> bool {
+    use silvr_core::gpu::GpuError;
+    matches!(
+        e,
+        silvr_core::job::JobError::Gpu(
+            GpuError::DeviceLost { .. } | GpuError::Readback(_) | GpuError::Kernel { .. }
+        )
+    )
+}
+
+/// A new device and the run continued from its last checkpoint (from the start when it has none).
+async fn recover(job: TrainJob, settings: &TrainSettings, why: &str) -> Result<TrainJob, Failure> {
+    let lost_at = job.trainer.step;
+    let data = job.trainer.data;
+    let gpu = silvr_core::gpu::Gpu::new(silvr_core::gpu::GpuOptions::default())
+        .await
+        .map_err(|e| {
+            (
+                "training".to_string(),
+                format!("the GPU device was lost at step {lost_at} ({why}) and no new one could be opened: {e}"),
+            )
+        })?;
+    let ck = SLOT.with(|s| s.borrow().outputs.get("checkpoint.ckpt").cloned());
+    let from = match &ck {
+        Some(b) => Checkpoint::from_bytes(b, Path::new("the last checkpoint"))
+            .ok()
+            .map(|c| (c.header.step, c)),
+        None => None,
+    };
+    let (job, resumed) = match from {
+        Some((step, c)) => (
+            TrainJob::resume(data, c, Backend::Wgpu(gpu), settings.job.steps),
+            format!("from the checkpoint at step {step}"),
+        ),
+        None => (
+            TrainJob::new(data, &settings.job, Backend::Wgpu(gpu)),
+            "from the start (no checkpoint was saved yet)".to_string(),
+        ),
+    };
+    let job = job.map_err(|e| ("training".to_string(), e.to_string()))?;
+    fail(
+        "training",
+        format!("the GPU device was lost at step {lost_at} ({why}); training goes on on a new device {resumed}"),
+    );
+    SLOT.with(|s| s.borrow_mut().step = (job.trainer.step, settings.job.steps));
+    state("resumed");
+    Ok(job)
 }
