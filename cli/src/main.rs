@@ -12,6 +12,7 @@ use silvr_core::lidar::{map, project};
 use silvr_core::synthetic::{generate, Preset};
 use silvr_core::train::export::ExportDepth;
 
+mod backend;
 mod ingest;
 mod serve;
 mod train;

@@ -72,7 +72,7 @@ pub fn run(a: &UncertaintyArgs) -> Result<UncertaintySummary> {
     } else {
         a.backend.as_str()
     };
-    let (engine, adapter) = crate::train::backend_with(backend, options)?;
+    let (engine, adapter) = crate::backend::backend_with(backend, options)?;
     if !a.quiet {
         eprintln!("uncertainty on {adapter}");
     }
@@ -82,7 +82,7 @@ pub fn run(a: &UncertaintyArgs) -> Result<UncertaintySummary> {
     if let silvr_core::train::Engine::Wgpu(e) = &trainer.engine {
         if a.profile {
             let rows = e.gpu.profile_take();
-            crate::train::print_profile(&rows, 1, t0.elapsed().as_secs_f64());
+            crate::backend::print_profile(&rows, 1, t0.elapsed().as_secs_f64());
         }
     }
     Ok(out)

@@ -26,6 +26,8 @@ use silvr_core::camera::{CameraModel, Distortion};
 use silvr_core::gpu::{AdapterReport, Gpu};
 use silvr_core::lidar::project::{self, SelfCheck};
 
+#[cfg(target_arch = "wasm32")]
+mod js;
 pub mod studio;
 #[cfg(target_arch = "wasm32")]
 mod train;

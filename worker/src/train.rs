@@ -17,7 +17,7 @@ use silvr_core::uncertainty::UncertaintyConfig;
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
-use super::web::{get, js_text, post, post_bytes, read_stream, scope, sleep_ms, Studio};
+use crate::js::{get, js_text, post, post_bytes, read_stream, scope, sleep_ms};
 use crate::view::is_fetchable;
 use crate::{SavedRun, ToPage, TrainAction, TrainResult, TrainSettings};
 use silvr_core::train::checkpoint::Checkpoint;
@@ -28,6 +28,17 @@ use std::path::Path;
 const DATASET: &str = "dataset.tar";
 const CHECKPOINT: &str = "checkpoint.ckpt";
 const RUN: &str = "run.json";
+
+/// What training needs from the rest of the worker (passed in, so training does not import the view):
+/// the device, and a way to open the trained points in the view.
+#[derive(Clone)]
+pub(crate) struct Host {
+    pub gpu: Rc<dyn Fn() -> silvr_core::gpu::Gpu>,
+    pub open_points: OpenPoints,
+}
+
+/// (PLY bytes, name, source) → a layer of the view.
+pub(crate) type OpenPoints = Rc<dyn Fn(&[u8], &str, &str)>;
 
 /// The layer number the trained points take in the view (the page numbers its own sources from 0).
 pub const TRAINED_LAYER: u32 = 1000;
@@ -103,7 +114,7 @@ pub(crate) fn download(id: u32, name: &str) {
 
 /// Dropped or chosen files (`paths`: each file's path within what was dropped) → a training run.
 pub(crate) async fn train_files(
-    studio: Rc<RefCell<Studio>>,
+    host: Host,
     id: u32,
     files: Vec<(String, web_sys::File)>,
     checkpoint: Option<web_sys::File>,
@@ -149,16 +160,11 @@ pub(crate) async fn train_files(
         },
         None => None,
     };
-    run(studio, id, out, settings, resume).await
+    run(host, id, out, settings, resume).await
 }
 
 /// A dataset archive fetched over http(s) → a training run.
-pub(crate) async fn train_url(
-    studio: Rc<RefCell<Studio>>,
-    id: u32,
-    url: String,
-    settings: TrainSettings,
-) {
+pub(crate) async fn train_url(host: Host, id: u32, url: String, settings: TrainSettings) {
     if !is_fetchable(&url) {
         return fail(&url, "only http: and https: URLs are opened");
     }
@@ -206,18 +212,12 @@ pub(crate) async fn train_url(
         .unwrap_or("submap.tar")
         .to_string();
     match Files::from_tar(&name, &bytes) {
-        Ok(files) => run(studio, id, files, settings, None).await,
+        Ok(files) => run(host, id, files, settings, None).await,
         Err(e) => fail(&url, e.to_string()),
     }
 }
 
-async fn run(
-    studio: Rc<RefCell<Studio>>,
-    id: u32,
-    files: Files,
-    settings: TrainSettings,
-    resume: Option<Vec<u8>>,
-) {
+async fn run(host: Host, id: u32, files: Files, settings: TrainSettings, resume: Option<Vec<u8>>) {
     if let Err(e) = settings.validate() {
         return fail("the training settings", e);
     }
@@ -237,7 +237,7 @@ async fn run(
             "a training run is already in progress: stop it first",
         );
     }
-    let result = run_inner(&studio, id, files, &settings, resume).await;
+    let result = run_inner(&host, id, files, &settings, resume).await;
     SLOT.with(|s| s.borrow_mut().control = None);
     match result {
         Ok(()) => state("done"),
@@ -251,7 +251,7 @@ async fn run(
 type Failure = (String, String);
 
 async fn run_inner(
-    studio: &Rc<RefCell<Studio>>,
+    host: &Host,
     id: u32,
     files: Files,
     settings: &TrainSettings,
@@ -292,7 +292,7 @@ async fn run_inner(
         skipped: data.skipped.clone(),
     });
     let has_val = !data.val.is_empty();
-    let gpu = studio.borrow().gpu.clone();
+    let gpu = (host.gpu)();
     let adapter = gpu.report().to_string();
     if let Some(bytes) = resume_bytes {
         // The run's own checkpoint until it saves a newer one (what a device loss resumes from).
@@ -431,7 +431,7 @@ async fn run_inner(
             }
         }
         let source = format!("trained: {name}");
-        super::web::add_layer(studio, TRAINED_LAYER, bytes, "points.ply", &source);
+        (host.open_points)(bytes, "points.ply", &source);
     }
     SLOT.with(|s| s.borrow_mut().outputs = std::mem::take(&mut sink.0));
     // A finished run is not offered for resuming; its outputs stay downloadable.
@@ -539,7 +539,7 @@ async fn saved_run() -> Option<SavedRun> {
 }
 
 /// Resumes the run saved in this origin (after a reload, or a new worker).
-pub(crate) async fn resume_saved(studio: Rc<RefCell<Studio>>, id: u32) {
+pub(crate) async fn resume_saved(host: Host, id: u32) {
     let Some(meta) = saved_run().await else {
         return fail("the saved run", "no run is saved in this browser's storage");
     };
@@ -550,7 +550,7 @@ pub(crate) async fn resume_saved(studio: Rc<RefCell<Studio>>, id: u32) {
         _ => return fail("the saved run", "its dataset or checkpoint is gone"),
     };
     match Files::from_tar(&meta.source, &dataset) {
-        Ok(files) => run(studio, id, files, meta.settings, Some(ck)).await,
+        Ok(files) => run(host, id, files, meta.settings, Some(ck)).await,
         Err(e) => fail("the saved run", e.to_string()),
     }
 }

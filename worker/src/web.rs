@@ -3,13 +3,13 @@
 use std::cell::RefCell;
 use std::rc::Rc;
 
-use serde::Serialize;
 use silvr_core::gpu::{Gpu, GpuOptions};
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::spawn_local;
-use web_sys::{DedicatedWorkerGlobalScope, MessageEvent};
+use web_sys::MessageEvent;
 
+use crate::js::{get, js_text, post, post_bytes, read_stream, scope, sleep_ms};
 use crate::studio::{parse_cameras, parse_layer, Layers, MAX_FILE_BYTES, MAX_LAYERS};
 use crate::view::{is_fetchable, Camera, ViewState};
 use crate::{
@@ -27,8 +27,8 @@ enum GpuState {
 }
 
 /// The view's state in the worker: the device, the layers, the canvas it draws into.
-pub(crate) struct Studio {
-    pub(crate) gpu: Gpu,
+struct Studio {
+    gpu: Gpu,
     layers: Layers,
     view: ViewState,
     target: Option<Target>,
@@ -157,8 +157,15 @@ fn message_id(data: &JsValue) -> Option<u32> {
         .map(|v| v as u32)
 }
 
-pub(crate) fn get(obj: &JsValue, key: &str) -> JsValue {
-    js_sys::Reflect::get(obj, &JsValue::from_str(key)).unwrap_or(JsValue::UNDEFINED)
+/// What training borrows from the studio: its device, and the view for the trained points.
+fn train_host(studio: &Rc<RefCell<Studio>>) -> crate::train::Host {
+    let (s1, s2) = (studio.clone(), studio.clone());
+    crate::train::Host {
+        gpu: Rc::new(move || s1.borrow().gpu.clone()),
+        open_points: Rc::new(move |bytes, name, source| {
+            add_layer(&s2, crate::train::TRAINED_LAYER, bytes, name, source)
+        }),
+    }
 }
 
 /// Handles one message once the device is ready. Messages that carry JS objects (a canvas, a file)
@@ -202,7 +209,7 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
                 .collect();
             let checkpoint = get(&data, "checkpoint").dyn_into::<web_sys::File>().ok();
             spawn_local(crate::train::train_files(
-                studio.clone(),
+                train_host(studio),
                 id,
                 files,
                 checkpoint,
@@ -280,14 +287,17 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
             }
         }
         FromPage::Bench { id, frames } => spawn_local(bench(studio.clone(), id, frames)),
-        FromPage::TrainUrl { id, url, settings } => {
-            spawn_local(crate::train::train_url(studio.clone(), id, url, settings))
-        }
+        FromPage::TrainUrl { id, url, settings } => spawn_local(crate::train::train_url(
+            train_host(studio),
+            id,
+            url,
+            settings,
+        )),
         FromPage::TrainControl { action } => crate::train::control(action),
         FromPage::TrainDownload { id, name } => crate::train::download(id, &name),
         FromPage::TrainQuerySaved => spawn_local(crate::train::query_saved()),
         FromPage::TrainResumeSaved { id } => {
-            spawn_local(crate::train::resume_saved(studio.clone(), id))
+            spawn_local(crate::train::resume_saved(train_host(studio), id))
         }
         FromPage::DebugLoseDevice => {
             let gpu = studio.borrow().gpu.clone();
@@ -307,13 +317,6 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
             });
         }
     }
-}
-
-pub(crate) async fn sleep_ms(ms: i32) {
-    let promise = js_sys::Promise::new(&mut |resolve, _| {
-        let _ = scope().set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, ms);
-    });
-    let _ = wasm_bindgen_futures::JsFuture::from(promise).await;
 }
 
 /// After a device loss: a new device, the layers uploaded again from the worker's copies, a new surface
@@ -592,65 +595,6 @@ fn report_counts(studio: &Rc<RefCell<Studio>>) {
     }
 }
 
-/// Reads a stream to its end into memory, reporting progress, refusing more than [`MAX_FILE_BYTES`].
-pub(crate) async fn read_stream(
-    stream: web_sys::ReadableStream,
-    total: Option<f64>,
-    id: u32,
-    source: &str,
-) -> Result<Vec<u8>, String> {
-    let reader: web_sys::ReadableStreamDefaultReader = stream.get_reader().unchecked_into();
-    // Reserve what the server announced, but at most 64 MiB up front: several sources that each claim
-    // 1.5 GiB must not exhaust the wasm heap before a byte arrives.
-    let cap = total.unwrap_or(0.0).clamp(0.0, (64u64 << 20) as f64) as usize;
-    let mut out = Vec::with_capacity(cap);
-    let mut reported = 0usize;
-    loop {
-        let r = wasm_bindgen_futures::JsFuture::from(reader.read())
-            .await
-            .map_err(|e| format!("the transfer broke off: {}", js_text(&e)))?;
-        if get(&r, "done").as_bool().unwrap_or(true) {
-            break;
-        }
-        let chunk: js_sys::Uint8Array = get(&r, "value")
-            .dyn_into()
-            .map_err(|_| "the stream gave something other than bytes".to_string())?;
-        let n = chunk.length() as usize;
-        if (out.len() + n) as u64 > MAX_FILE_BYTES {
-            let _ = reader.cancel();
-            return Err(format!(
-                "it is larger than the {} MiB the studio opens",
-                MAX_FILE_BYTES >> 20
-            ));
-        }
-        let at = out.len();
-        out.try_reserve(n)
-            .map_err(|_| "the worker ran out of memory while reading it".to_string())?;
-        out.resize(at + n, 0);
-        chunk.copy_to(&mut out[at..]);
-        if out.len() - reported >= 4 << 20 {
-            reported = out.len();
-            post(&ToPage::Progress {
-                id,
-                source: source.to_string(),
-                stage: "download".into(),
-                loaded: out.len() as f64,
-                total,
-            });
-        }
-    }
-    Ok(out)
-}
-
-pub(crate) fn js_text(e: &JsValue) -> String {
-    e.as_string()
-        .or_else(|| {
-            e.dyn_ref::<js_sys::Error>()
-                .map(|e| String::from(e.message()))
-        })
-        .unwrap_or_else(|| format!("{e:?}"))
-}
-
 async fn open_url(studio: Rc<RefCell<Studio>>, id: u32, url: String) {
     let fail = |message: String| {
         post(&ToPage::LoadError {
@@ -733,13 +677,7 @@ async fn open_file(studio: Rc<RefCell<Studio>>, id: u32, file: web_sys::File) {
     }
 }
 
-pub(crate) fn add_layer(
-    studio: &Rc<RefCell<Studio>>,
-    id: u32,
-    bytes: &[u8],
-    name: &str,
-    source: &str,
-) {
+fn add_layer(studio: &Rc<RefCell<Studio>>, id: u32, bytes: &[u8], name: &str, source: &str) {
     {
         let s = studio.borrow();
         if s.layers.layers.len() >= MAX_LAYERS {
@@ -792,24 +730,6 @@ pub(crate) fn add_layer(
             source: source.to_string(),
             message,
         }),
-    }
-}
-
-/// Posts a download's bytes, transferring the buffer instead of copying it.
-pub(crate) fn post_bytes(id: u32, name: &str, bytes: &[u8]) {
-    let array = js_sys::Uint8Array::new_with_length(bytes.len() as u32);
-    array.copy_from(bytes);
-    let msg = js_sys::Object::new();
-    let set = |k: &str, v: &JsValue| {
-        js_sys::Reflect::set(&msg, &JsValue::from_str(k), v).ok();
-    };
-    set("type", &"download".into());
-    set("id", &JsValue::from(id));
-    set("name", &name.into());
-    set("bytes", &array);
-    let transfer = js_sys::Array::of1(&array.buffer());
-    if let Err(e) = scope().post_message_with_transfer(&msg, &transfer) {
-        web_sys::console::error_2(&"silvr worker: postMessage failed".into(), &e);
     }
 }
 
@@ -883,27 +803,6 @@ async fn browser_adapter_info() -> Result<Option<BrowserAdapterInfo>, String> {
         device: text("device"),
         description: text("description"),
     }))
-}
-
-pub(crate) fn scope() -> DedicatedWorkerGlobalScope {
-    js_sys::global().unchecked_into()
-}
-
-/// Posts a message to the page as a plain JS object (structs and maps become objects, u64 numbers).
-pub(crate) fn post(msg: &ToPage) {
-    let serializer = serde_wasm_bindgen::Serializer::json_compatible();
-    let value = match msg.serialize(&serializer) {
-        Ok(v) => v,
-        Err(e) => {
-            web_sys::console::error_1(
-                &format!("silvr worker: cannot serialize {msg:?}: {e}").into(),
-            );
-            return;
-        }
-    };
-    if let Err(e) = scope().post_message(&value) {
-        web_sys::console::error_2(&"silvr worker: postMessage failed".into(), &e);
-    }
 }
 
 /// Panics abort a wasm instance; tell the page (and the console) why before that happens.

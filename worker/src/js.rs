@@ -1,0 +1,119 @@
+//! The worker's browser plumbing, shared by the view (`web.rs`) and training (`train.rs`): posting to
+//! the page, reading JS objects, timers, streamed reads.
+
+use serde::Serialize;
+use wasm_bindgen::prelude::*;
+use wasm_bindgen::JsCast;
+use web_sys::DedicatedWorkerGlobalScope;
+
+use crate::studio::MAX_FILE_BYTES;
+use crate::ToPage;
+
+pub(crate) fn get(obj: &JsValue, key: &str) -> JsValue {
+    js_sys::Reflect::get(obj, &JsValue::from_str(key)).unwrap_or(JsValue::UNDEFINED)
+}
+
+pub(crate) async fn sleep_ms(ms: i32) {
+    let promise = js_sys::Promise::new(&mut |resolve, _| {
+        let _ = scope().set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, ms);
+    });
+    let _ = wasm_bindgen_futures::JsFuture::from(promise).await;
+}
+
+/// Reads a stream to its end into memory, reporting progress, refusing more than [`MAX_FILE_BYTES`].
+pub(crate) async fn read_stream(
+    stream: web_sys::ReadableStream,
+    total: Option<f64>,
+    id: u32,
+    source: &str,
+) -> Result<Vec<u8>, String> {
+    let reader: web_sys::ReadableStreamDefaultReader = stream.get_reader().unchecked_into();
+    // Reserve what the server announced, but at most 64 MiB up front: several sources that each claim
+    // 1.5 GiB must not exhaust the wasm heap before a byte arrives.
+    let cap = total.unwrap_or(0.0).clamp(0.0, (64u64 << 20) as f64) as usize;
+    let mut out = Vec::with_capacity(cap);
+    let mut reported = 0usize;
+    loop {
+        let r = wasm_bindgen_futures::JsFuture::from(reader.read())
+            .await
+            .map_err(|e| format!("the transfer broke off: {}", js_text(&e)))?;
+        if get(&r, "done").as_bool().unwrap_or(true) {
+            break;
+        }
+        let chunk: js_sys::Uint8Array = get(&r, "value")
+            .dyn_into()
+            .map_err(|_| "the stream gave something other than bytes".to_string())?;
+        let n = chunk.length() as usize;
+        if (out.len() + n) as u64 > MAX_FILE_BYTES {
+            let _ = reader.cancel();
+            return Err(format!(
+                "it is larger than the {} MiB the studio opens",
+                MAX_FILE_BYTES >> 20
+            ));
+        }
+        let at = out.len();
+        out.try_reserve(n)
+            .map_err(|_| "the worker ran out of memory while reading it".to_string())?;
+        out.resize(at + n, 0);
+        chunk.copy_to(&mut out[at..]);
+        if out.len() - reported >= 4 << 20 {
+            reported = out.len();
+            post(&ToPage::Progress {
+                id,
+                source: source.to_string(),
+                stage: "download".into(),
+                loaded: out.len() as f64,
+                total,
+            });
+        }
+    }
+    Ok(out)
+}
+
+pub(crate) fn js_text(e: &JsValue) -> String {
+    e.as_string()
+        .or_else(|| {
+            e.dyn_ref::<js_sys::Error>()
+                .map(|e| String::from(e.message()))
+        })
+        .unwrap_or_else(|| format!("{e:?}"))
+}
+
+/// Posts a download's bytes, transferring the buffer instead of copying it.
+pub(crate) fn post_bytes(id: u32, name: &str, bytes: &[u8]) {
+    let array = js_sys::Uint8Array::new_with_length(bytes.len() as u32);
+    array.copy_from(bytes);
+    let msg = js_sys::Object::new();
+    let set = |k: &str, v: &JsValue| {
+        js_sys::Reflect::set(&msg, &JsValue::from_str(k), v).ok();
+    };
+    set("type", &"download".into());
+    set("id", &JsValue::from(id));
+    set("name", &name.into());
+    set("bytes", &array);
+    let transfer = js_sys::Array::of1(&array.buffer());
+    if let Err(e) = scope().post_message_with_transfer(&msg, &transfer) {
+        web_sys::console::error_2(&"silvr worker: postMessage failed".into(), &e);
+    }
+}
+
+pub(crate) fn scope() -> DedicatedWorkerGlobalScope {
+    js_sys::global().unchecked_into()
+}
+
+/// Posts a message to the page as a plain JS object (structs and maps become objects, u64 numbers).
+pub(crate) fn post(msg: &ToPage) {
+    let serializer = serde_wasm_bindgen::Serializer::json_compatible();
+    let value = match msg.serialize(&serializer) {
+        Ok(v) => v,
+        Err(e) => {
+            web_sys::console::error_1(
+                &format!("silvr worker: cannot serialize {msg:?}: {e}").into(),
+            );
+            return;
+        }
+    };
+    if let Err(e) = scope().post_message(&value) {
+        web_sys::console::error_2(&"silvr worker: postMessage failed".into(), &e);
+    }
+}
