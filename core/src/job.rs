@@ -271,7 +271,14 @@ impl TrainJob {
     /// One step, timed; errors name the step.
     pub async fn step(&mut self) -> Result<StepReport, JobError> {
         let t0 = Instant::now();
-        let s = self.trainer.train_step().await?;
+        let rays = self.trainer.config.rays_per_batch;
+        let s = self.trainer.train_step().await.map_err(|e| match e {
+            // Say which setting to change: the batch is what outgrew the device's limit.
+            e @ GpuError::BufferTooLarge { .. } => JobError::Invalid(format!(
+                "{e}: use fewer rays per batch than {rays}, or a smaller model"
+            )),
+            e => JobError::Gpu(e),
+        })?;
         self.train_s += t0.elapsed().as_secs_f64();
         let t = &self.trainer;
         let session = (t.step - self.start_step) as f64;

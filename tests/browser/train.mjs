@@ -207,6 +207,19 @@ export function trainSuite(driver) {
       await page.close();
     });
 
+    test('a batch too large for the adapter names the limit and the setting to change', async () => {
+      const run = BROWSER_RUN.replace('rays=256', 'rays=1048576');
+      const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&${run}`);
+      await waitState(page, ['failed', 'done'], 300_000);
+      const error = await driver.evaluate(page, () => document.querySelector('#train-error').textContent);
+      assert.equal((await status(page)).state, 'failed', error);
+      assert.match(error, /max_storage_buffer_binding_size/);
+      assert.match(error, /fewer rays per batch than 1048576/);
+      assert.equal(await driver.evaluate(page, () => document.body.dataset.state), 'ready');
+      assert.deepEqual(log.filter((x) => x.startsWith('[pageerror]')), [], log.join('\n'));
+      await page.close();
+    });
+
     for (const [file, expect] of [
       ['corrupt-image.tar', /images\/cam_left\/00003\.png.*(cannot read image|not a readable)/],
       ['no-transforms.tar', /no-transforms\.tar.*no transforms\.json/],

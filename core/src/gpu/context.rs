@@ -48,7 +48,10 @@ pub enum GpuError {
     RequestDevice { adapter: String, detail: String },
     #[error("kernel '{kernel}' failed on the GPU: {detail}")]
     Kernel { kernel: String, detail: String },
-    #[error("{what} needs a {bytes}-byte GPU buffer, but this device allows at most {max} bytes per binding")]
+    #[error(
+        "{what} needs a {bytes}-byte GPU buffer, but this device allows at most {max} bytes per binding \
+         (its max_storage_buffer_binding_size)"
+    )]
     BufferTooLarge { what: String, bytes: u64, max: u64 },
     #[error("reading a GPU buffer back failed: {0}")]
     Readback(String),
