@@ -207,6 +207,31 @@ export function trainSuite(driver) {
       await page.close();
     });
 
+    test('a worker crash mid-training: reported, a new worker started, the saved run resumed', async () => {
+      const run = BROWSER_RUN.replace('steps=200', 'steps=70').replace('uncertainty=2', 'uncertainty=0');
+      const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&${run}&checkpoint-every=20`);
+      await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.savedStep || 0) >= 20, null, RUN_TIMEOUT_MS);
+      await driver.evaluate(page, () => document.dispatchEvent(new CustomEvent('silvr-debug-panic')));
+      await driver.waitFor(page, () => document.querySelector('#error').dataset.restarts === '2', null, 60_000);
+      assert.match(await driver.evaluate(page, () => document.querySelector('#error').textContent), /crashed.*new worker was started/);
+      await driver.waitFor(page, () => document.body.dataset.state === 'ready', null, STARTUP_TIMEOUT_MS);
+      await driver.waitFor(page, () => !document.querySelector('#train-resume').hidden, null, 60_000);
+      const from = Number(await driver.evaluate(page, () => document.querySelector('#train-resume').dataset.step));
+      assert.ok(from >= 20, `the saved run is at step ${from}`);
+      await driver.evaluate(page, () => document.querySelector('#train-resume').click());
+      await waitState(page, ['done', 'failed']);
+      const s = await status(page);
+      assert.equal(s.state, 'done', await driver.evaluate(page, () => document.querySelector('#train-error').textContent));
+      assert.equal(Number(s.firstStep), from + 1);
+      assert.equal(s.step, '70');
+      // The view lives on in the new worker: its kernel check ran and passed.
+      assert.equal(await driver.evaluate(page, () => document.querySelector('#projection').dataset.passed), 'true');
+      console.log(`${driver.name}: the worker crashed after a checkpoint at step ${from}; a new worker resumed it and finished`);
+      const errors = log.filter((x) => x.startsWith('[pageerror]'));
+      assert.deepEqual(errors, [], log.join('\n'));
+      await page.close();
+    });
+
     test('a batch too large for the adapter names the limit and the setting to change', async () => {
       const run = BROWSER_RUN.replace('rays=256', 'rays=1048576');
       const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&${run}`);

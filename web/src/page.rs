@@ -24,6 +24,10 @@ const RERUN_POINTS: usize = 20_000;
 struct Page {
     doc: web_sys::Document,
     worker: Option<Worker>,
+    /// Workers started so far; events of an older one are ignored.
+    generation: u32,
+    /// The current worker has reported its adapter (a failure after that is a crash, not a load error).
+    worker_ready: bool,
     /// Checks asked for with the button so far (their ids are 1, 2, …).
     requested: u32,
     /// Projection results shown so far (startup one included).
@@ -38,6 +42,8 @@ pub fn start() {
     let page: Shared = Rc::new(RefCell::new(Page {
         doc: doc.clone(),
         worker: None,
+        generation: 0,
+        worker_ready: false,
         requested: 0,
         runs: 0,
     }));
@@ -68,9 +74,18 @@ pub fn start() {
 fn start_worker(page: &Shared) -> Result<Worker, JsValue> {
     // trunk's loader shim for the `worker` binary (fixed, unhashed name next to index.html).
     let worker = Worker::new("./worker_loader.js")?;
+    let generation = {
+        let mut p = page.borrow_mut();
+        p.generation += 1;
+        p.worker_ready = false;
+        p.generation
+    };
     {
         let page = page.clone();
         let on_message = Closure::<dyn FnMut(MessageEvent)>::new(move |ev: MessageEvent| {
+            if page.borrow().generation != generation {
+                return;
+            }
             let data = ev.data();
             // A download carries its bytes as a Uint8Array, read as such (not through serde).
             let kind = js_sys::Reflect::get(&data, &"type".into())
@@ -107,8 +122,21 @@ fn start_worker(page: &Shared) -> Result<Worker, JsValue> {
     }
     {
         let doc = page.borrow().doc.clone();
+        let page = page.clone();
         let on_error = Closure::<dyn FnMut(ErrorEvent)>::new(move |ev: ErrorEvent| {
             ev.prevent_default();
+            if page.borrow().generation != generation {
+                return;
+            }
+            // A worker that was running died (a panic traps the wasm instance): start another.
+            if page.borrow().worker_ready {
+                let why = if ev.message().is_empty() {
+                    "it stopped".to_string()
+                } else {
+                    ev.message()
+                };
+                return restart_worker(&page, &why);
+            }
             let what = if ev.message().is_empty() {
                 "the worker script could not be loaded (is worker_loader.js next to index.html?)"
                     .to_string()
@@ -123,11 +151,58 @@ fn start_worker(page: &Shared) -> Result<Worker, JsValue> {
     Ok(worker)
 }
 
+/// Workers started after crashes, at most: a worker that keeps crashing is a bug to report, not to loop on.
+const MAX_RESTARTS: u32 = 3;
+
+/// The worker crashed: say so, start a new one, hand it the view, and let the training card offer the
+/// run saved in the browser's storage.
+fn restart_worker(page: &Shared, why: &str) {
+    let (doc, generation) = {
+        let p = page.borrow();
+        (p.doc.clone(), p.generation)
+    };
+    if let Some(old) = page.borrow_mut().worker.take() {
+        old.terminate();
+    }
+    if generation > MAX_RESTARTS {
+        return fail(
+            &doc,
+            &format!(
+                "The engine worker crashed again ({why}); reload the page, and please report it."
+            ),
+        );
+    }
+    show_error(
+        &doc,
+        &format!(
+            "The engine worker crashed ({why}). A new worker was started; a training run saved in this \
+             browser can be resumed from its last checkpoint."
+        ),
+    );
+    if let Some(e) = by_id(&doc, "error") {
+        e.set_attribute("data-restarts", &generation.to_string())
+            .ok();
+    }
+    set_state(&doc, "loading", "Starting a new engine worker…");
+    match start_worker(page) {
+        Ok(worker) => {
+            crate::viewer::restart(&worker);
+            page.borrow_mut().worker = Some(worker);
+            crate::train::on_worker_restart();
+        }
+        Err(e) => fail(
+            &doc,
+            &format!("Could not start a new engine worker: {}", js_error_text(&e)),
+        ),
+    }
+}
+
 fn on_worker_message(page: &Shared, msg: ToPage) {
     let doc = page.borrow().doc.clone();
     crate::viewer::worker_listening();
     match msg {
         ToPage::Adapter { adapter, browser } => {
+            page.borrow_mut().worker_ready = true;
             show_adapter(&doc, &adapter, browser.as_ref());
             set_state(
                 &doc,
@@ -216,6 +291,11 @@ fn on_worker_message(page: &Shared, msg: ToPage) {
             message,
             ..
         } => crate::viewer::on_view_error(&capitalize(&message)),
+        ToPage::Error {
+            stage: Stage::Panic,
+            message,
+            ..
+        } if page.borrow().worker_ready => restart_worker(page, &message),
         ToPage::Error {
             id,
             stage,

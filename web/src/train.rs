@@ -117,10 +117,23 @@ pub fn start() {
             });
         });
     }
-    let _ = doc;
+    // Tests of the crash recovery: `silvr-debug-panic` on the document makes the worker panic.
+    listen(&doc, "silvr-debug-panic", |_: Event| {
+        post(&FromPage::DebugPanic)
+    });
     let url = query_train_url();
     CARD.with(|c| c.borrow_mut().pending_url = url);
     // A run saved before a reload is offered first; `?train=` starts once the worker says there is none.
+    post(&FromPage::TrainQuerySaved);
+}
+
+/// A new worker replaced a crashed one: the run in it is gone; offer the saved one.
+pub fn on_worker_restart() {
+    CARD.with(|c| c.borrow_mut().history.clear());
+    status(
+        "failed",
+        "The worker running the training stopped; a new one was started.",
+    );
     post(&FromPage::TrainQuerySaved);
 }
 

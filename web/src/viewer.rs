@@ -136,6 +136,65 @@ pub fn start(worker: &Worker) {
     schedule(&v);
 }
 
+/// After the worker died and a new one started: a fresh canvas (the old canvas's control went to the dead
+/// worker and cannot be taken back) handed to the new worker, the linked sources opened again. Layers from
+/// dropped files died with the worker: the user is told to drop them again.
+pub fn restart(worker: &Worker) {
+    let Some(v) = viewer() else { return };
+    let dropped = {
+        let mut b = v.borrow_mut();
+        b.worker = worker.clone();
+        let dropped = b.local.len();
+        b.layers.clear();
+        b.local.clear();
+        b.counts = None;
+        b.frame_pending = false;
+        b.outbox = Some(Vec::new());
+        dropped
+    };
+    let doc = document();
+    if let Some(old) = by_id(&doc, "view") {
+        let fresh = old
+            .clone_node()
+            .ok()
+            .and_then(|n| n.dyn_into::<HtmlCanvasElement>().ok());
+        if let Some(canvas) = fresh {
+            old.replace_with_with_node_1(&canvas).ok();
+            let (w, h) = canvas_size(&canvas);
+            v.borrow_mut().size = (w, h);
+            if let Ok(off) = canvas.transfer_control_to_offscreen() {
+                let msg = js_sys::Object::new();
+                set(&msg, "type", &"canvas".into());
+                set(&msg, "canvas", &off);
+                set(&msg, "width", &JsValue::from(w));
+                set(&msg, "height", &JsValue::from(h));
+                send(&v, msg.into(), Some(js_sys::Array::of1(&off)));
+            }
+            wire_camera(&v, &canvas);
+        }
+    }
+    if dropped > 0 {
+        message(
+            "warn",
+            &format!(
+                "{dropped} dropped file(s) were open in the worker that stopped: drop them again"
+            ),
+        );
+    }
+    show_layers(&v);
+    let sources = v.borrow().state.sources.clone();
+    for (i, url) in sources.iter().enumerate() {
+        post(
+            &v,
+            &silvr_worker::FromPage::OpenUrl {
+                id: i as u32,
+                url: url.clone(),
+            },
+        );
+    }
+    schedule(&v);
+}
+
 /// The view state in the address bar's hash (and the problems found in it).
 fn link_state() -> (ViewState, Vec<String>) {
     let hash = web_sys::window()

@@ -253,6 +253,8 @@ pub enum FromPage {
     Bench { id: u32, frames: u32 },
     /// Destroys the device, as a driver reset or a GPU process crash would (tests of the recovery).
     DebugLoseDevice,
+    /// Panics in the worker, as a bug would (tests of the page's crash recovery).
+    DebugPanic,
     /// Fetch a dataset archive (`silvr pack`) over http(s) and train it. (Dropped files travel as
     /// `{type: "train-files", id, files: [File], paths: [string], settings}`, read field by field.)
     TrainUrl {
@@ -396,6 +398,7 @@ impl FromPage {
             FromPage::Resize { .. }
             | FromPage::View { .. }
             | FromPage::DebugLoseDevice
+            | FromPage::DebugPanic
             | FromPage::TrainControl { .. }
             | FromPage::TrainQuerySaved => None,
         }

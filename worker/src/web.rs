@@ -296,6 +296,7 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
         FromPage::TrainControl { action } => crate::train::control(action),
         FromPage::TrainDownload { id, name } => crate::train::download(id, &name),
         FromPage::TrainQuerySaved => spawn_local(crate::train::query_saved()),
+        FromPage::DebugPanic => panic!("a test asked the worker to panic (debug-panic)"),
         FromPage::TrainResumeSaved { id } => {
             spawn_local(crate::train::resume_saved(train_host(studio), id))
         }
