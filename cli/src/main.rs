@@ -443,7 +443,10 @@ fn main() {
 fn pack(dataset: &Path, out: &Path) -> Result<()> {
     use silvr_core::source;
     let (src, json) = source::open(dataset)?;
-    let files = source::pack(src.as_ref(), &json)?;
+    let (files, skipped) = source::pack(src.as_ref(), &json)?;
+    for s in &skipped {
+        eprintln!("warning: left out {s}");
+    }
     let tar = files.to_tar();
     silvr_core::dataset::write_atomic(out, &tar)
         .with_context(|| format!("writing {}", out.display()))?;

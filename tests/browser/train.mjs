@@ -232,6 +232,22 @@ export function trainSuite(driver) {
       await page.close();
     });
 
+    test('a nerfstudio capture (camera only) trains vision-only in the worker', { skip: !existsSync(join(FIXTURES, 'fox.tar')) && 'no fox.tar fixture (../shared/data/real/fox absent)' }, async () => {
+      const native = JSON.parse(readFileSync(join(FIXTURES, 'fox-native.json'), 'utf8'));
+      // Mode silvr asked for: a capture without lidar trains vision-only all the same.
+      const run = 'steps=60&rays=256&model=tiny&downscale=8&export=0&uncertainty=0&view-every=0&mode=silvr';
+      const { page, log } = await open(`train=${encodeURIComponent('/data/fox.tar')}&${run}`);
+      await waitState(page, ['done', 'failed']);
+      const s = await status(page);
+      assert.equal(s.state, 'done', await driver.evaluate(page, () => document.querySelector('#train-error').textContent));
+      const r = JSON.parse(await driver.evaluate(page, () => document.querySelector('#train-result').dataset.result));
+      console.log(`${driver.name}: fox (camera only) trained vision-only: held-out PSNR ${r.heldout_psnr.toFixed(2)} dB (native ${native.heldout_psnr_mean.toFixed(2)})`);
+      assert.ok(Math.abs(r.heldout_psnr - native.heldout_psnr_mean) <= PSNR_TOLERANCE_DB, `${r.heldout_psnr} vs native ${native.heldout_psnr_mean}`);
+      assert.equal(r.mode, 'vision');
+      assert.deepEqual(log.filter((x) => x.startsWith('[pageerror]')), [], log.join('\n'));
+      await page.close();
+    });
+
     test('a batch too large for the adapter names the limit and the setting to change', async () => {
       const run = BROWSER_RUN.replace('rays=256', 'rays=1048576');
       const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&${run}`);

@@ -253,3 +253,64 @@ fn broken_archives_name_the_file_and_the_problem() {
     // The failed pack left the earlier file as it was (written under a temporary name, then renamed).
     assert_eq!(std::fs::read(&bad).unwrap(), vec![0x5a; 4096]);
 }
+
+/// The real fox capture (`../shared/data/real/fox`: nerfstudio layout, camera only, 50 of its 67 listed
+/// photos present) packs with the missing frames left out and named, and trains vision-only from the
+/// archive; the archive is left for the studio's browser test. Skips cleanly when the data is absent.
+#[test]
+fn a_nerfstudio_capture_packs_and_trains_vision_only_when_present() {
+    let fox = silvr_tests::workspace_root().join("../shared/data/real/fox");
+    if !fox.join("transforms.json").is_file() {
+        eprintln!("skipping: {} absent", fox.display());
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let tar = tmp.path().join("fox.tar");
+    let said = run(&[
+        "pack",
+        fox.to_str().unwrap(),
+        "--out",
+        tar.to_str().unwrap(),
+    ]);
+    assert_eq!(said.matches("left out").count(), 17, "{said}");
+    let out = tmp.path().join("fox-train");
+    run(&[
+        "train",
+        tar.to_str().unwrap(),
+        "--mode",
+        "vision",
+        "--backend",
+        "wgpu",
+        "--steps",
+        "60",
+        "--rays",
+        "256",
+        "--model",
+        "tiny",
+        "--downscale",
+        "8",
+        "--seed",
+        "1",
+        "--export-rays",
+        "0",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let report = json(&out.join("train.json"));
+    assert_eq!(report["mode"], "vision");
+    let psnr = report["heldout_psnr_mean"].as_f64().unwrap();
+    assert!(psnr > 12.0, "fox held-out PSNR {psnr}");
+    println!("fox (vision-only, tiny, 60 steps, downscale 8): held-out PSNR {psnr:.2} dB");
+    if let Some(dir) = std::env::var_os("SILVR_STUDIO_FIXTURES") {
+        let dir = std::path::PathBuf::from(dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::copy(&tar, dir.join("fox.tar")).unwrap();
+        let mut r = report.clone();
+        r["heldout_psnr_mean"] = psnr.into();
+        std::fs::write(
+            dir.join("fox-native.json"),
+            serde_json::to_vec_pretty(&r).unwrap(),
+        )
+        .unwrap();
+    }
+}

@@ -549,7 +549,16 @@ fn setup_drop_zone(doc: &web_sys::Document) {
 
 fn open_files(files: &FileList) {
     let files: Vec<File> = (0..files.length()).filter_map(|i| files.get(i)).collect();
-    crate::viewer::open_files(&files);
+    // A submap archive goes to the training card; point clouds to the view.
+    let (archives, rest): (Vec<File>, Vec<File>) = files
+        .into_iter()
+        .partition(|f| f.name().to_ascii_lowercase().ends_with(".tar"));
+    if let Some(a) = archives.into_iter().next() {
+        crate::train::choose(vec![(a.name(), a)]);
+    }
+    if !rest.is_empty() {
+        crate::viewer::open_files(&rest);
+    }
 }
 
 fn show_files(doc: &web_sys::Document, files: &FileList) {

@@ -117,6 +117,7 @@ pub fn start() {
             });
         });
     }
+    wire_drop();
     // Tests of the crash recovery: `silvr-debug-panic` on the document makes the worker panic.
     listen(&doc, "silvr-debug-panic", |_: Event| {
         post(&FromPage::DebugPanic)
@@ -198,6 +199,127 @@ pub fn on_saved(step: u32) {
     }
 }
 
+/// Drops on the training card: an archive, dataset files, or a whole folder (walked through the
+/// browser's file-system entries, so its files keep their paths).
+fn wire_drop() {
+    let Some(card) = el::<HtmlElement>("train-card") else {
+        return;
+    };
+    for name in ["dragenter", "dragover"] {
+        let c2 = card.clone();
+        listen(&card, name, move |ev: web_sys::DragEvent| {
+            ev.prevent_default();
+            ev.stop_propagation();
+            c2.class_list().add_1("over").ok();
+        });
+    }
+    {
+        let c2 = card.clone();
+        listen(&card, "dragleave", move |_: web_sys::DragEvent| {
+            c2.class_list().remove_1("over").ok();
+        });
+    }
+    let c2 = card.clone();
+    listen(&card, "drop", move |ev: web_sys::DragEvent| {
+        ev.prevent_default();
+        ev.stop_propagation();
+        c2.class_list().remove_1("over").ok();
+        let Some(dt) = ev.data_transfer() else { return };
+        // Entries must be taken while the event is dispatched; walking them can wait.
+        let items = js_sys::Reflect::get(&dt, &"items".into()).unwrap_or(JsValue::UNDEFINED);
+        let n = js_sys::Reflect::get(&items, &"length".into())
+            .ok()
+            .and_then(|v| v.as_f64())
+            .unwrap_or(0.0) as u32;
+        let mut entries = Vec::new();
+        for i in 0..n {
+            let item = js_sys::Reflect::get(&items, &i.into()).unwrap_or(JsValue::UNDEFINED);
+            if let Ok(e) = call(&item, "webkitGetAsEntry", &[]) {
+                if !e.is_null() && !e.is_undefined() {
+                    entries.push(e);
+                }
+            }
+        }
+        if entries.is_empty() {
+            let files: Vec<(String, File)> = dt
+                .files()
+                .map(|l| (0..l.length()).filter_map(|k| l.get(k)).collect::<Vec<_>>())
+                .unwrap_or_default()
+                .into_iter()
+                .map(|f| (f.name(), f))
+                .collect();
+            if files.is_empty() {
+                return error("That drop held no file or folder.");
+            }
+            return choose(files);
+        }
+        status("loading", "Reading the dropped folder…");
+        wasm_bindgen_futures::spawn_local(async move {
+            let mut files = Vec::new();
+            for e in entries {
+                if let Err(e) = walk(e, &mut files).await {
+                    status("failed", "The dropped folder could not be read.");
+                    return error(&format!("Reading the drop: {e}"));
+                }
+            }
+            choose(files);
+        });
+    });
+}
+
+fn call(obj: &JsValue, method: &str, args: &[JsValue]) -> Result<JsValue, JsValue> {
+    let f: js_sys::Function = js_sys::Reflect::get(obj, &method.into())?.dyn_into()?;
+    match args {
+        [] => f.call0(obj),
+        [a] => f.call1(obj, a),
+        [a, b] => f.call2(obj, a, b),
+        _ => Err("too many arguments".into()),
+    }
+}
+
+/// A callback-style entry method (`file`, `readEntries`) as a future.
+async fn callback(obj: &JsValue, method: &str) -> Result<JsValue, String> {
+    let promise = js_sys::Promise::new(&mut |resolve, reject| {
+        if let Err(e) = call(obj, method, &[resolve.into(), reject.clone().into()]) {
+            let _ = reject.call1(&JsValue::NULL, &e);
+        }
+    });
+    wasm_bindgen_futures::JsFuture::from(promise)
+        .await
+        .map_err(|e| format!("{e:?}"))
+}
+
+/// Collects the files under a dropped entry with their paths (`capture/images/0001.jpg`); at most
+/// 100 000 files.
+async fn walk(root: JsValue, out: &mut Vec<(String, File)>) -> Result<(), String> {
+    let mut stack = vec![root];
+    while let Some(e) = stack.pop() {
+        let get = |k: &str| js_sys::Reflect::get(&e, &k.into()).unwrap_or(JsValue::UNDEFINED);
+        if get("isFile").as_bool() == Some(true) {
+            let path = get("fullPath").as_string().unwrap_or_default();
+            let f: File = callback(&e, "file")
+                .await?
+                .dyn_into()
+                .map_err(|_| "not a file")?;
+            out.push((path.trim_start_matches('/').to_string(), f));
+            if out.len() > 100_000 {
+                return Err("more than 100 000 files: drop the dataset folder itself".into());
+            }
+        } else if get("isDirectory").as_bool() == Some(true) {
+            let reader = call(&e, "createReader", &[]).map_err(|e| format!("{e:?}"))?;
+            // `readEntries` gives a folder's entries in batches until an empty one.
+            loop {
+                let batch = js_sys::Array::from(&callback(&reader, "readEntries").await?);
+                if batch.length() == 0 {
+                    break;
+                }
+                stack.extend(batch.iter());
+            }
+        }
+    }
+    Ok(())
+}
+
 /// `?train=URL` (plus `steps=`, `rays=`, `model=`, `mode=`, `uncertainty=` to preset the form).
 fn query_train_url() -> Option<String> {
     let search = web_sys::window()?.location().search().ok()?;
@@ -234,7 +356,8 @@ fn query_train_url() -> Option<String> {
     url
 }
 
-fn choose(files: Vec<(String, File)>) {
+/// A dataset chosen or dropped (also a `.tar` dropped on the page's main drop zone).
+pub fn choose(files: Vec<(String, File)>) {
     let bytes: f64 = files.iter().map(|(_, f)| f.size()).sum();
     let what = match files.as_slice() {
         [] => return,
@@ -415,7 +538,11 @@ pub fn on_loaded(
 ) {
     let mut text = format!(
         "Loaded {source}: {images} images ({train} train, {held_out} held out), {}.",
-        if lidar { "with lidar" } else { "camera only" }
+        if lidar {
+            "with lidar"
+        } else {
+            "camera only: training vision-only"
+        }
     );
     if !skipped.is_empty() {
         text.push_str(&format!(

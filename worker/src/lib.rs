@@ -367,6 +367,8 @@ pub enum TrainAction {
 /// A finished run as the page shows it.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct TrainResult {
+    /// The mode it trained (a camera-only capture trains `vision` whatever was asked).
+    pub mode: String,
     pub steps: u32,
     pub train_s: f64,
     pub rays_per_s: f64,

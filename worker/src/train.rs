@@ -292,6 +292,12 @@ async fn run_inner(
         skipped: data.skipped.clone(),
     });
     let has_val = !data.val.is_empty();
+    // A camera-only capture (a nerfstudio folder) trains vision-only whatever the form said.
+    let mut spec = settings.job.clone();
+    if spec.mode != Mode::Vision && !data.has_lidar() {
+        spec.mode = Mode::Vision;
+        log::info!("no lidar depth in {name}: training vision-only");
+    }
     let gpu = (host.gpu)();
     let adapter = gpu.report().to_string();
     if let Some(bytes) = resume_bytes {
@@ -315,7 +321,7 @@ async fn run_inner(
             }
             TrainJob::resume(data, ck, Backend::Wgpu(gpu), settings.job.steps)
         }
-        None => TrainJob::new(data, &settings.job, Backend::Wgpu(gpu)),
+        None => TrainJob::new(data, &spec, Backend::Wgpu(gpu)),
     }
     .map_err(|e| ("training".to_string(), e.to_string()))?;
     SLOT.with(|s| s.borrow_mut().step = (job.trainer.step, settings.job.steps));
@@ -411,6 +417,7 @@ async fn run_inner(
         post_view(&mut job, unc).await?;
     }
     let mut result = TrainResult {
+        mode: summary.mode.to_string(),
         steps: summary.steps,
         train_s: summary.train_s,
         rays_per_s: summary.train_rays_per_s,
@@ -649,6 +656,11 @@ fn device_problem(e: &silvr_core::job::JobError) -> bool {
 /// A new device and the run continued from its last checkpoint (from the start when it has none).
 async fn recover(job: TrainJob, settings: &TrainSettings, why: &str) -> Result<TrainJob, Failure> {
     let lost_at = job.trainer.step;
+    // The mode the run really trains (camera-only data trains vision-only).
+    let spec = silvr_core::job::JobSpec {
+        mode: job.trainer.config.mode,
+        ..settings.job.clone()
+    };
     let data = job.trainer.data;
     let gpu = silvr_core::gpu::Gpu::new(silvr_core::gpu::GpuOptions::default())
         .await
@@ -671,7 +683,7 @@ async fn recover(job: TrainJob, settings: &TrainSettings, why: &str) -> Result<T
             format!("from the checkpoint at step {step}"),
         ),
         None => (
-            TrainJob::new(data, &settings.job, Backend::Wgpu(gpu)),
+            TrainJob::new(data, &spec, Backend::Wgpu(gpu)),
             "from the start (no checkpoint was saved yet)".to_string(),
         ),
     };
