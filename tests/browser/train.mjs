@@ -248,6 +248,23 @@ export function trainSuite(driver) {
       await page.close();
     });
 
+    test('a submap dropped on the training card is chosen for training', async () => {
+      const { page, log } = await open('');
+      await driver.evaluate(page, async () => {
+        const blob = await (await fetch('/data/micro.tar')).blob();
+        const dt = new DataTransfer();
+        dt.items.add(new File([blob], 'micro.tar', { type: 'application/x-tar' }));
+        const card = document.querySelector('#train-card');
+        card.dispatchEvent(new DragEvent('dragover', { dataTransfer: dt, bubbles: true, cancelable: true }));
+        card.dispatchEvent(new DragEvent('drop', { dataTransfer: dt, bubbles: true, cancelable: true }));
+      });
+      await waitState(page, ['ready', 'failed'], 30_000);
+      assert.match(await driver.evaluate(page, () => document.querySelector('#train-status').textContent), /Chosen: micro\.tar/);
+      assert.equal(await driver.evaluate(page, () => document.querySelector('#train-start').disabled), false);
+      assert.deepEqual(log.filter((x) => x.startsWith('[pageerror]')), [], log.join('\n'));
+      await page.close();
+    });
+
     test('a batch too large for the adapter names the limit and the setting to change', async () => {
       const run = BROWSER_RUN.replace('rays=256', 'rays=1048576');
       const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&${run}`);
