@@ -18,7 +18,14 @@ const STARTUP_TIMEOUT_MS = 120_000;
 const RUN_TIMEOUT_MS = 600_000;
 
 /** The run of tests/tests/submap.rs (native reference), as the studio's link presets it. */
-const BROWSER_RUN = 'steps=200&rays=256&model=tiny&downscale=2&export=4096&uncertainty=2&view-every=100&mode=silvr';
+const BROWSER_RUN = 'steps=150&rays=256&model=tiny&downscale=2&export=4096&uncertainty=2&view-every=50&views=8&mode=silvr';
+/** Runs that test a path (faults, resuming), not quality: short, and nothing after training but the checkpoint. */
+// The paths (resume after a reload, a native checkpoint, a camera-only capture, device loss, worker crash)
+// are the same worker code in both browsers; in CI they run where training is fast (Firefox on lavapipe,
+// `driver.paths`), to keep CI within its time. `SILVR_BROWSER_PATHS=all` runs them in Chromium too (they pass
+// there: BENCHMARKS.md / the issue notes).
+const PATHS_SKIP = 'path test: runs in Firefox (SILVR_BROWSER_PATHS=all runs it here too)';
+const PATH_RUN = 'rays=256&model=tiny&downscale=2&export=0&uncertainty=0&view-every=0&views=0&mode=silvr';
 /** Held-out PSNR of the browser run within this of the native WGSL run (dB; the issue's bound). */
 const PSNR_TOLERANCE_DB = 0.5;
 /** Exported points within this fraction of the native count (accumulation ≥ 0.98 is a sharp cut). */
@@ -85,15 +92,15 @@ export function trainSuite(driver) {
       await driver.evaluate(page, () => document.querySelector('#train-pause').click());
       await driver.waitFor(page, (s) => Number(document.querySelector('#train-status').dataset.step) > s, paused, 60_000);
 
-      // The held-out view beside its photo, rendered at step 100.
-      await driver.waitFor(page, () => document.querySelector('#train-render').dataset.step === '100', null, RUN_TIMEOUT_MS);
+      // The held-out view beside its photo, rendered at step 50.
+      await driver.waitFor(page, () => document.querySelector('#train-render').dataset.step === '50', null, RUN_TIMEOUT_MS);
       assert.equal(await driver.evaluate(page, () => document.querySelector('#train-photo').hidden), false);
 
       await waitState(page, ['done', 'failed']);
       const t1 = await driver.evaluate(page, () => performance.now());
       const s = await status(page);
       assert.equal(s.state, 'done', `${await driver.evaluate(page, () => document.querySelector('#train-error').textContent)}\n${log.join('\n')}`);
-      assert.equal(s.step, '200');
+      assert.equal(s.step, '150');
       const start = Number(s.lossStart);
       const recent = Number(s.lossRecent);
       assert.ok(recent < 0.6 * start, `loss fell from ${start} (first ten steps) to only ${recent} (last ten)`);
@@ -101,7 +108,7 @@ export function trainSuite(driver) {
       const r = JSON.parse(await driver.evaluate(page, () => document.querySelector('#train-result').dataset.result));
       const nativePsnr = native.heldout_psnr_mean;
       console.log(
-        `${driver.name} (${adapter}): 200 steps in ${r.train_s.toFixed(0)} s of training ` +
+        `${driver.name} (${adapter}): 150 steps in ${r.train_s.toFixed(0)} s of training ` +
           `(${((Date.now() - wall0) / 1000).toFixed(0)} s wall), ${r.rays_per_s.toFixed(0)} rays/s ` +
           `(native WGSL ${native.train_rays_per_s.toFixed(0)}); held-out PSNR ${r.heldout_psnr.toFixed(2)} dB ` +
           `(native ${nativePsnr.toFixed(2)}); ${r.points} points (native ${native.points_count}); log-std quantiles ` +
@@ -140,11 +147,11 @@ export function trainSuite(driver) {
       await page.close();
     });
 
-    test('a reload mid-training resumes from the checkpoint in browser storage; a native checkpoint continues in the browser', async () => {
+    test('a reload mid-training resumes from the checkpoint in browser storage; a native checkpoint continues in the browser', { skip: !driver.paths && PATHS_SKIP }, async () => {
       const native = JSON.parse(readFileSync(join(FIXTURES, 'micro-native.json'), 'utf8'));
-      const query = `train=${encodeURIComponent('/data/micro.tar')}&${BROWSER_RUN}&checkpoint-every=40`;
+      const query = `train=${encodeURIComponent('/data/micro.tar')}&steps=80&${PATH_RUN}&checkpoint-every=20`;
       const { page, log } = await open(query);
-      await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.savedStep || 0) >= 40, null, RUN_TIMEOUT_MS);
+      await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.savedStep || 0) >= 20, null, RUN_TIMEOUT_MS);
       const before = await status(page);
       const saved = Number(before.savedStep);
       // Reload: the saved run is offered (and the link does not start a new one); resume it.
@@ -152,20 +159,20 @@ export function trainSuite(driver) {
       await driver.waitFor(page, () => !document.querySelector('#train-resume').hidden, null, STARTUP_TIMEOUT_MS);
       assert.equal(await driver.evaluate(page, () => document.querySelector('#train-resume').dataset.step), String(saved));
       await driver.evaluate(page, () => document.querySelector('#train-resume').click());
-      await driver.waitFor(page, (s) => Number(document.querySelector('#train-status').dataset.step || 0) >= s + 20, saved, RUN_TIMEOUT_MS);
+      await driver.waitFor(page, (s) => Number(document.querySelector('#train-status').dataset.step || 0) >= s + 10, saved, RUN_TIMEOUT_MS);
       const after = await status(page);
       assert.equal(Number(after.firstStep), saved + 1, 'the resumed run continues at the saved step');
       assert.ok(
         Number(after.lossRecent) < 0.8 * Number(before.lossStart),
         `the resumed run's loss ${after.lossRecent} is not below the run's start ${before.lossStart}`,
       );
-      // Stop: the run finishes (renders, export, uncertainty) and is no longer offered for resuming.
+      // Stop: the run finishes and is no longer offered for resuming.
       await driver.evaluate(page, () => document.querySelector('#train-stop').click());
       await waitState(page, ['done', 'failed']);
       assert.equal((await status(page)).state, 'done', await driver.evaluate(page, () => document.querySelector('#train-error').textContent));
 
-      // The native run's checkpoint (200 steps on the same submap) continues here to step 230.
-      const { page: p2, log: log2 } = await open(BROWSER_RUN.replace('steps=200', 'steps=230'));
+      // The native run's checkpoint (150 steps on the same submap) continues here to step 160.
+      const { page: p2, log: log2 } = await open(BROWSER_RUN.replace('steps=150', 'steps=160').replace('export=4096', 'export=0').replace('uncertainty=2', 'uncertainty=0'));
       await driver.upload(p2, '#train-file', join(FIXTURES, 'micro.tar'));
       await driver.upload(p2, '#train-checkpoint', join(FIXTURES, 'micro-native.ckpt'));
       await driver.waitFor(p2, () => !document.querySelector('#train-start').disabled, null, 30_000);
@@ -173,12 +180,12 @@ export function trainSuite(driver) {
       await waitState(p2, ['done', 'failed']);
       const s2 = await status(p2);
       assert.equal(s2.state, 'done', await driver.evaluate(p2, () => document.querySelector('#train-error').textContent));
-      assert.equal(s2.firstStep, '201');
+      assert.equal(s2.firstStep, '151');
       const r = JSON.parse(await driver.evaluate(p2, () => document.querySelector('#train-result').dataset.result));
-      assert.equal(r.steps, 230);
-      // Thirty more steps from the native field: at least as good as the native run (0.5 dB of noise).
+      assert.equal(r.steps, 160);
+      // Ten more steps from the native field: as good as the native run (0.5 dB of noise).
       assert.ok(r.heldout_psnr > native.heldout_psnr_mean - PSNR_TOLERANCE_DB, `${r.heldout_psnr} dB after continuing the native ${native.heldout_psnr_mean} dB`);
-      console.log(`${driver.name}: resumed at step ${saved + 1} after a reload; the native checkpoint continued to step 230: held-out PSNR ${r.heldout_psnr.toFixed(2)} dB (native at 200: ${native.heldout_psnr_mean.toFixed(2)})`);
+      console.log(`${driver.name}: resumed at step ${saved + 1} after a reload; the native checkpoint continued to step 160: held-out PSNR ${r.heldout_psnr.toFixed(2)} dB (native at 150: ${native.heldout_psnr_mean.toFixed(2)})`);
       for (const l of [log, log2]) {
         assert.deepEqual(l.filter((x) => x.startsWith('[pageerror]')), [], l.join('\n'));
       }
@@ -186,10 +193,9 @@ export function trainSuite(driver) {
       await p2.close();
     });
 
-    test('a lost GPU device mid-training: a message, a new device, the run goes on from its checkpoint', async () => {
-      const run = BROWSER_RUN.replace('steps=200', 'steps=70').replace('uncertainty=2', 'uncertainty=0');
-      const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&${run}&checkpoint-every=20`);
-      await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.savedStep || 0) >= 20, null, RUN_TIMEOUT_MS);
+    test('a lost GPU device mid-training: a message, a new device, the run goes on from its checkpoint', { skip: !driver.paths && PATHS_SKIP }, async () => {
+      const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&steps=40&${PATH_RUN}&checkpoint-every=10`);
+      await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.savedStep || 0) >= 10, null, RUN_TIMEOUT_MS);
       const saved = Number((await status(page)).savedStep);
       await driver.evaluate(page, () => document.querySelector('#view').dispatchEvent(new CustomEvent('silvr-lose-device')));
       await driver.waitFor(page, () => /device was lost/.test(document.querySelector('#train-error').textContent), null, 120_000);
@@ -201,29 +207,28 @@ export function trainSuite(driver) {
       const s = await status(page);
       assert.equal(s.state, 'done', await driver.evaluate(page, () => document.querySelector('#train-error').textContent));
       assert.equal(Number(s.firstStep), from + 1, 'the chart restarts at the checkpoint');
-      assert.equal(s.step, '70');
+      assert.equal(s.step, '40');
       console.log(`${driver.name}: device lost after step ${saved}+; resumed from the checkpoint at step ${from} on a new device and finished`);
       assert.deepEqual(log.filter((x) => x.startsWith('[pageerror]')), [], log.join('\n'));
       await page.close();
     });
 
-    test('a worker crash mid-training: reported, a new worker started, the saved run resumed', async () => {
-      const run = BROWSER_RUN.replace('steps=200', 'steps=70').replace('uncertainty=2', 'uncertainty=0');
-      const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&${run}&checkpoint-every=20`);
-      await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.savedStep || 0) >= 20, null, RUN_TIMEOUT_MS);
+    test('a worker crash mid-training: reported, a new worker started, the saved run resumed', { skip: !driver.paths && PATHS_SKIP }, async () => {
+      const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&steps=40&${PATH_RUN}&checkpoint-every=10`);
+      await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.savedStep || 0) >= 10, null, RUN_TIMEOUT_MS);
       await driver.evaluate(page, () => document.dispatchEvent(new CustomEvent('silvr-debug-panic')));
-      await driver.waitFor(page, () => document.querySelector('#error').dataset.restarts === '2', null, 60_000);
-      assert.match(await driver.evaluate(page, () => document.querySelector('#error').textContent), /crashed.*new worker was started/);
+      await driver.waitFor(page, () => document.querySelector('#error').dataset.restarts === '1', null, 60_000);
+      assert.match(await driver.evaluate(page, () => document.querySelector('#error').textContent), /crashed[\s\S]*new worker was started/i);
       await driver.waitFor(page, () => document.body.dataset.state === 'ready', null, STARTUP_TIMEOUT_MS);
       await driver.waitFor(page, () => !document.querySelector('#train-resume').hidden, null, 60_000);
       const from = Number(await driver.evaluate(page, () => document.querySelector('#train-resume').dataset.step));
-      assert.ok(from >= 20, `the saved run is at step ${from}`);
+      assert.ok(from >= 10, `the saved run is at step ${from}`);
       await driver.evaluate(page, () => document.querySelector('#train-resume').click());
       await waitState(page, ['done', 'failed']);
       const s = await status(page);
       assert.equal(s.state, 'done', await driver.evaluate(page, () => document.querySelector('#train-error').textContent));
       assert.equal(Number(s.firstStep), from + 1);
-      assert.equal(s.step, '70');
+      assert.equal(s.step, '40');
       // The view lives on in the new worker: its kernel check ran and passed.
       assert.equal(await driver.evaluate(page, () => document.querySelector('#projection').dataset.passed), 'true');
       console.log(`${driver.name}: the worker crashed after a checkpoint at step ${from}; a new worker resumed it and finished`);
@@ -232,10 +237,10 @@ export function trainSuite(driver) {
       await page.close();
     });
 
-    test('a nerfstudio capture (camera only) trains vision-only in the worker', { skip: !existsSync(join(FIXTURES, 'fox.tar')) && 'no fox.tar fixture (../shared/data/real/fox absent)' }, async () => {
+    test('a nerfstudio capture (camera only) trains vision-only in the worker', { skip: (!driver.paths && PATHS_SKIP) || (!existsSync(join(FIXTURES, 'fox.tar')) && 'no fox.tar fixture (../shared/data/real/fox absent)') }, async () => {
       const native = JSON.parse(readFileSync(join(FIXTURES, 'fox-native.json'), 'utf8'));
       // Mode silvr asked for: a capture without lidar trains vision-only all the same.
-      const run = 'steps=60&rays=256&model=tiny&downscale=8&export=0&uncertainty=0&view-every=0&mode=silvr';
+      const run = 'steps=40&rays=256&model=tiny&downscale=8&export=0&uncertainty=0&view-every=0&views=1&mode=silvr';
       const { page, log } = await open(`train=${encodeURIComponent('/data/fox.tar')}&${run}`);
       await waitState(page, ['done', 'failed']);
       const s = await status(page);
@@ -266,8 +271,8 @@ export function trainSuite(driver) {
     });
 
     test('a batch too large for the adapter names the limit and the setting to change', async () => {
-      const run = BROWSER_RUN.replace('rays=256', 'rays=1048576');
-      const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&${run}`);
+      const run = PATH_RUN.replace('rays=256', 'rays=1048576');
+      const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&steps=10&${run}`);
       await waitState(page, ['failed', 'done'], 300_000);
       const error = await driver.evaluate(page, () => document.querySelector('#train-error').textContent);
       assert.equal((await status(page)).state, 'failed', error);

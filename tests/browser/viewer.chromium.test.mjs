@@ -12,6 +12,7 @@ const CHROMIUM = process.env.SILVR_CHROMIUM || '/usr/bin/chromium';
 const driver = {
   name: 'Chromium',
   serve: true,
+  paths: process.env.SILVR_BROWSER_PATHS === 'all',
   launch: () =>
     chromium.launch({
       executablePath: CHROMIUM,

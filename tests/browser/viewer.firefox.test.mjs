@@ -16,6 +16,7 @@ if (!existsSync(FIREFOX)) {
 const driver = {
   name: 'Firefox',
   serve: false,
+  paths: true,
   launch: () =>
     puppeteer.launch({
       browser: 'firefox',
@@ -29,7 +30,11 @@ const driver = {
     }),
   close: (b) => b?.close().catch(() => {}),
   newPage: async (browser) => {
-    const page = await browser.newPage();
+    // A browser context per page, as Playwright gives: storage (the training card's saved runs in the
+    // origin-private file system) does not leak from one test into the next.
+    const context = await browser.createBrowserContext();
+    const page = await context.newPage();
+    page.once('close', () => context.close().catch(() => {}));
     await page.setViewport({ width: 1100, height: 900 });
     return { page, log: collectLog(page) };
   },

@@ -10,7 +10,7 @@ use silvr_core::source::{Files, Source};
 use silvr_tests::build_silvr;
 
 /// The browser test's run (tests/browser/train.mjs: `BROWSER_RUN`). Keep the two in step.
-const STEPS: &str = "200";
+const STEPS: &str = "150";
 const RAYS: &str = "256";
 const MODEL: &str = "tiny";
 const DOWNSCALE: &str = "2";
@@ -143,7 +143,7 @@ fn packed_submap_trains_on_wgsl_like_its_folder_and_leaves_the_browser_fixtures(
     let psnr = report["heldout_psnr_mean"].as_f64().unwrap();
     assert!(psnr > 18.0, "held-out PSNR {psnr}");
     let cloud = silvr_core::pointcloud::read_ply(&native.join("points.ply")).unwrap();
-    assert!(cloud.len() > 1000, "{} points", cloud.len());
+    assert!(cloud.len() > 500, "{} points", cloud.len());
     let q = quantiles(cloud.scalar("log_std_combined").unwrap());
     println!(
         "native WGSL run of the browser test's submap: held-out PSNR {psnr:.2} dB, {} points, log_std quantiles {q:?}, {:.0} rays/s",
@@ -282,7 +282,7 @@ fn a_nerfstudio_capture_packs_and_trains_vision_only_when_present() {
         "--backend",
         "wgpu",
         "--steps",
-        "60",
+        "40",
         "--rays",
         "256",
         "--model",
@@ -293,6 +293,8 @@ fn a_nerfstudio_capture_packs_and_trains_vision_only_when_present() {
         "1",
         "--export-rays",
         "0",
+        "--render-views",
+        "1",
         "--out",
         out.to_str().unwrap(),
     ]);
@@ -300,7 +302,7 @@ fn a_nerfstudio_capture_packs_and_trains_vision_only_when_present() {
     assert_eq!(report["mode"], "vision");
     let psnr = report["heldout_psnr_mean"].as_f64().unwrap();
     assert!(psnr > 12.0, "fox held-out PSNR {psnr}");
-    println!("fox (vision-only, tiny, 60 steps, downscale 8): held-out PSNR {psnr:.2} dB");
+    println!("fox (vision-only, tiny, 40 steps, downscale 8): held-out PSNR {psnr:.2} dB");
     if let Some(dir) = std::env::var_os("SILVR_STUDIO_FIXTURES") {
         let dir = std::path::PathBuf::from(dir);
         std::fs::create_dir_all(&dir).unwrap();

@@ -3,7 +3,7 @@
 //! a held-out view beside its photo every few hundred steps; pause, resume, stop; the result's points
 //! open in the view, its outputs download.
 //!
-//! Query keys preset the form: `steps`, `rays`, `model`, `mode`, `downscale`, `export`, `uncertainty`,
+//! Query keys preset the form: `steps`, `rays`, `model`, `mode`, `downscale`, `export`, `views`, `uncertainty`,
 //! `view-every`, `checkpoint-every`.
 //!
 //! For tests, `#train-status` carries `data-state` (`idle`, `ready`, `loading`, `running`, `paused`,
@@ -343,6 +343,7 @@ fn query_train_url() -> Option<String> {
             "downscale" => "train-downscale",
             "checkpoint-every" => "train-ckpt-every",
             "export" => "train-export",
+            "views" => "train-views",
             "model" => "train-model",
             "mode" => "train-mode",
             _ => continue,
@@ -407,6 +408,7 @@ fn settings() -> Result<TrainSettings, String> {
         downscale: num("train-downscale", "Downscale")?.min(u32::MAX as u64) as u32,
         view_every: num("train-view-every", "Held-out view every")?.min(u32::MAX as u64) as u32,
         export_rays: num("train-export", "Export rays")? as usize,
+        render_views: num("train-views", "Held-out views")? as usize,
         uncertainty_batches: num("train-unc", "Uncertainty batches")? as usize,
         uncertainty_rays: 1024,
     };

@@ -296,6 +296,9 @@ pub struct TrainSettings {
     /// A held-out view is rendered beside its photo every this many steps (0: only at the end).
     #[serde(default = "default_view_every")]
     pub view_every: u32,
+    /// Held-out views rendered and scored after training (at most).
+    #[serde(default = "default_render_views")]
+    pub render_views: usize,
     /// Training rays of the point export.
     #[serde(default = "default_export_rays")]
     pub export_rays: usize,
@@ -314,6 +317,9 @@ fn one() -> u32 {
 }
 fn default_view_every() -> u32 {
     100
+}
+fn default_render_views() -> usize {
+    8
 }
 fn default_export_rays() -> usize {
     16_384

@@ -374,7 +374,7 @@ async fn run_inner(
             checkpoint_to_opfs(&mut job, meta, keep).await?;
         }
         if has_val && settings.view_every > 0 && r.step % settings.view_every == 0 && !job.done() {
-            post_view(&mut job, None).await?;
+            post_view(&mut job).await?;
         }
         // Let the page's messages (pause, stop, view changes) in between steps.
         sleep_ms(0).await;
@@ -395,7 +395,7 @@ async fn run_inner(
     });
     let opts = FinishOptions {
         dataset: name.clone(),
-        render_views: Some(8),
+        render_views: Some(settings.render_views),
         view_normals: false,
         export_rays: settings.export_rays,
         export_depth: Default::default(),
@@ -407,14 +407,15 @@ async fn run_inner(
         .finish(&opts, &mut sink, observer)
         .await
         .map_err(|e| ("after training".to_string(), e.to_string()))?;
-    // The held-out view at the end, with its uncertainty image when the pass ran.
-    if has_val {
-        let stem = silvr_core::job::stem(&job.trainer.data.images[job.trainer.data.val[0]].name);
-        let unc = sink
-            .0
-            .get(&format!("renders/{stem}_uncertainty.png"))
-            .cloned();
-        post_view(&mut job, unc).await?;
+    // The held-out view at the end (the render `finish` made), with its uncertainty image when the pass ran.
+    if let (Some(&i), Some(score)) = (job.trainer.data.val.first(), summary.heldout.first()) {
+        let im = &job.trainer.data.images[i];
+        let stem = silvr_core::job::stem(&im.name);
+        if let Some(rgb) = sink.0.get(&format!("renders/{stem}_rgb.png")) {
+            let photo = silvr_core::dataset::png_rgb(im.width, im.height, &im.rgb);
+            let unc = sink.0.get(&format!("renders/{stem}_uncertainty.png"));
+            send_view(job.trainer.step, score, rgb, &photo, unc.map(Vec::as_slice));
+        }
     }
     let mut result = TrainResult {
         mode: summary.mode.to_string(),
@@ -459,12 +460,24 @@ fn quantiles(v: &[f32], qs: &[f64]) -> Vec<f32> {
         .collect()
 }
 
-/// Renders the first held-out view and sends it beside its photo (PNG bytes, transferred).
-async fn post_view(job: &mut TrainJob, uncertainty: Option<Vec<u8>>) -> Result<(), Failure> {
+/// Renders the first held-out view and sends it beside its photo.
+async fn post_view(job: &mut TrainJob) -> Result<(), Failure> {
     let h = job
         .held_out(0, false)
         .await
         .map_err(|e| ("held-out render".to_string(), e.to_string()))?;
+    send_view(job.trainer.step, &h.score, &h.rgb_png, &h.photo_png, None);
+    Ok(())
+}
+
+/// A held-out view to the page (PNG bytes as `Uint8Array`s, not serde arrays of numbers).
+fn send_view(
+    step: u32,
+    score: &silvr_core::train::export::ViewScore,
+    render: &[u8],
+    photo: &[u8],
+    uncertainty: Option<&[u8]>,
+) {
     let msg = js_sys::Object::new();
     let set = |k: &str, v: &JsValue| {
         js_sys::Reflect::set(&msg, &JsValue::from_str(k), v).ok();
@@ -475,18 +488,17 @@ async fn post_view(job: &mut TrainJob, uncertainty: Option<Vec<u8>>) -> Result<(
         a
     };
     set("type", &"train-view".into());
-    set("step", &JsValue::from(job.trainer.step));
-    set("name", &h.score.name.clone().into());
-    set("psnr", &JsValue::from(h.score.psnr));
-    set("render", &bytes(&h.rgb_png));
-    set("photo", &bytes(&h.photo_png));
+    set("step", &JsValue::from(step));
+    set("name", &score.name.clone().into());
+    set("psnr", &JsValue::from(score.psnr));
+    set("render", &bytes(render));
+    set("photo", &bytes(photo));
     if let Some(u) = uncertainty {
-        set("uncertainty", &bytes(&u));
+        set("uncertainty", &bytes(u));
     }
     if let Err(e) = scope().post_message(&msg) {
         web_sys::console::error_2(&"silvr worker: postMessage failed".into(), &e);
     }
-    Ok(())
 }
 
 /// Saves the run's checkpoint (and what resuming needs) in the origin-private file system, keeps it as

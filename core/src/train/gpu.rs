@@ -277,24 +277,47 @@ impl GpuEngine {
         self.gpu.finish_and_read::<f32>(enc, &reads).await
     }
 
-    /// The most rays one batch may hold before a work buffer would pass the device's binding limit.
-    pub fn max_rays(&self, normals: bool) -> usize {
+    /// Words of the widest buffer an MLP of `m` with `input` features per row needs over `rows` rows
+    /// (activations, saved values, and the scratch with its per-chunk partial gradients).
+    fn mlp_words(m: &crate::field::mlp::MlpConfig, input: usize, rows: usize) -> usize {
+        (rows * m.saved_per_row().max(input).max(m.output).max(4)).max(m.scratch_words(rows))
+    }
+
+    /// The largest single work buffer of a batch of `rays` rays, `normal_rays` of them with normals:
+    /// (what it holds, 32-bit words). The binding limit applies per buffer.
+    fn largest_work_buffer(&self, rays: usize, normal_rays: usize) -> (&'static str, usize) {
         let c = &self.cfg;
         let n = c.sampler.samples;
         let dm = c.density_mlp();
-        let rows = n * if normals { 7 } else { 1 };
-        let mut per_ray = rows
-            * dm.saved_per_row()
-                .max(c.field.grid.output_dim())
-                .max(dm.output);
-        per_ray = per_ray.max(n * c.colour_mlp().saved_per_row().max(c.colour_mlp().input));
+        let cm = c.colour_mlp();
+        let rows = rays * n + 6 * normal_rays * n;
+        let mut best = (
+            "density buffer",
+            Self::mlp_words(&dm, c.field.grid.output_dim(), rows),
+        );
+        let colour = Self::mlp_words(&cm, cm.input, rays * n);
+        if colour > best.1 {
+            best = ("colour buffer", colour);
+        }
         for (l, &nl) in c.sampler.proposal_samples.iter().enumerate() {
             let pm = c.proposal_mlp(l);
-            per_ray = per_ray.max(nl * pm.saved_per_row().max(c.proposals[l].grid.output_dim()));
+            let w = Self::mlp_words(&pm, c.proposals[l].grid.output_dim(), rays * nl);
+            if w > best.1 {
+                best = ("proposal buffer", w);
+            }
         }
-        // MLP backward scratch grows with rows too; leave headroom.
-        let budget = self.gpu.max_binding_bytes() / 4 / 2;
-        (budget as usize / per_ray.max(1)).max(1)
+        best
+    }
+
+    /// The most rays one inference batch may hold before a work buffer would pass the device's binding
+    /// limit (a tenth of headroom for the per-ray buffers the estimate leaves out).
+    pub fn max_rays(&self, normals: bool) -> usize {
+        const PROBE: usize = 4096;
+        let words = self
+            .largest_work_buffer(PROBE, if normals { PROBE } else { 0 })
+            .1;
+        let budget = (self.gpu.max_binding_bytes() / 4) as usize * 9 / 10;
+        (budget * PROBE / words.max(1)).max(1)
     }
 
     /// Batch buffers for `rays` rays (`normal_rays` with normals), grown when a batch needs more. An
@@ -305,9 +328,27 @@ impl GpuEngine {
                 return Ok(());
             }
         }
-        // Grow, never shrink; the old buffers go first, so a grown batch does not need both at once.
-        let rays = rays.max(self.work.as_ref().map_or(0, |w| w.rays)).max(1);
-        let normal_rays = normal_rays.max(self.work.as_ref().map_or(0, |w| w.normal_rays));
+        // Grow, never shrink, unless the grown shape (the most rays of one call with the most normals of
+        // another) would not fit where this batch alone does; the old buffers go first, so a grown batch
+        // does not need both at once.
+        let max = self.gpu.max_binding_bytes();
+        let fits = |s: &Self, r: usize, nm: usize| s.largest_work_buffer(r, nm).1 as u64 * 4 <= max;
+        let (asked, asked_nm) = (rays.max(1), normal_rays);
+        let mut rays = asked.max(self.work.as_ref().map_or(0, |w| w.rays));
+        let mut normal_rays = asked_nm.max(self.work.as_ref().map_or(0, |w| w.normal_rays));
+        if !fits(self, rays, normal_rays) {
+            (rays, normal_rays) = (asked, asked_nm);
+        }
+        // Refuse a batch whose largest buffer cannot be bound before allocating any of them (a browser's
+        // GPU process may not survive gigabytes of buffers allocated on the way to the one that fails).
+        let (what, words) = self.largest_work_buffer(rays, normal_rays);
+        if words as u64 * 4 > max {
+            return Err(GpuError::BufferTooLarge {
+                what: format!("the largest {what} of a {rays}-ray batch"),
+                bytes: words as u64 * 4,
+                max,
+            });
+        }
         self.work = None;
         let scope = self
             .gpu
