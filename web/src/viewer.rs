@@ -101,25 +101,7 @@ pub fn start(worker: &Worker) {
     }));
     VIEWER.with(|cell| *cell.borrow_mut() = Some(v.clone()));
     if let Some(canvas) = by_id(&doc, "view").and_then(|e| e.dyn_into::<HtmlCanvasElement>().ok()) {
-        let (w, h) = canvas_size(&canvas);
-        v.borrow_mut().size = (w, h);
-        match canvas.transfer_control_to_offscreen() {
-            Ok(off) => {
-                let msg = js_sys::Object::new();
-                set(&msg, "type", &"canvas".into());
-                set(&msg, "canvas", &off);
-                set(&msg, "width", &JsValue::from(w));
-                set(&msg, "height", &JsValue::from(h));
-                send(&v, msg.into(), Some(js_sys::Array::of1(&off)));
-            }
-            Err(e) => message(
-                "bad",
-                &format!(
-                    "This browser cannot hand the canvas to the worker (OffscreenCanvas): {e:?}"
-                ),
-            ),
-        }
-        wire_camera(&v, &canvas);
+        hand_canvas(&v, &canvas);
     }
     wire_controls(&v);
     show_controls(&v);
@@ -134,6 +116,27 @@ pub fn start(worker: &Worker) {
         );
     }
     schedule(&v);
+}
+
+/// Transfers the canvas to the worker (its control can be handed over once) and wires the camera to it.
+fn hand_canvas(v: &Shared, canvas: &HtmlCanvasElement) {
+    let (w, h) = canvas_size(canvas);
+    v.borrow_mut().size = (w, h);
+    match canvas.transfer_control_to_offscreen() {
+        Ok(off) => {
+            let msg = js_sys::Object::new();
+            set(&msg, "type", &"canvas".into());
+            set(&msg, "canvas", &off);
+            set(&msg, "width", &JsValue::from(w));
+            set(&msg, "height", &JsValue::from(h));
+            send(v, msg.into(), Some(js_sys::Array::of1(&off)));
+        }
+        Err(e) => message(
+            "bad",
+            &format!("This browser cannot hand the canvas to the worker (OffscreenCanvas): {e:?}"),
+        ),
+    }
+    wire_camera(v, canvas);
 }
 
 /// After the worker died and a new one started: a fresh canvas (the old canvas's control went to the dead
@@ -160,17 +163,7 @@ pub fn restart(worker: &Worker) {
             .and_then(|n| n.dyn_into::<HtmlCanvasElement>().ok());
         if let Some(canvas) = fresh {
             old.replace_with_with_node_1(&canvas).ok();
-            let (w, h) = canvas_size(&canvas);
-            v.borrow_mut().size = (w, h);
-            if let Ok(off) = canvas.transfer_control_to_offscreen() {
-                let msg = js_sys::Object::new();
-                set(&msg, "type", &"canvas".into());
-                set(&msg, "canvas", &off);
-                set(&msg, "width", &JsValue::from(w));
-                set(&msg, "height", &JsValue::from(h));
-                send(&v, msg.into(), Some(js_sys::Array::of1(&off)));
-            }
-            wire_camera(&v, &canvas);
+            hand_canvas(&v, &canvas);
         }
     }
     if dropped > 0 {

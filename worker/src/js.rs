@@ -117,3 +117,52 @@ pub(crate) fn post(msg: &ToPage) {
         web_sys::console::error_2(&"silvr worker: postMessage failed".into(), &e);
     }
 }
+
+/// The last path segment of a URL (`…/data/points.ply?x` → `points.ply`), or `default`.
+pub(crate) fn url_file_name(url: &str, default: &str) -> String {
+    url.split(['?', '#'])
+        .next()
+        .and_then(|p| p.rsplit('/').next())
+        .filter(|n| !n.is_empty())
+        .unwrap_or(default)
+        .to_string()
+}
+
+/// Fetches an http(s) URL into memory (progress reported under `id`, at most [`MAX_FILE_BYTES`]); the
+/// error is a sentence for the user.
+pub(crate) async fn fetch_bytes(url: &str, id: u32) -> Result<Vec<u8>, String> {
+    let scope: web_sys::WorkerGlobalScope = js_sys::global().unchecked_into();
+    let response = match wasm_bindgen_futures::JsFuture::from(scope.fetch_with_str(url)).await {
+        Ok(r) => r.unchecked_into::<web_sys::Response>(),
+        Err(e) => {
+            return Err(format!(
+                "could not be fetched: the server is unreachable or refused the studio's origin (CORS) ({})",
+                js_text(&e)
+            ))
+        }
+    };
+    if !response.ok() {
+        return Err(format!(
+            "the server answered HTTP {} {}",
+            response.status(),
+            response.status_text()
+        ));
+    }
+    let total = response
+        .headers()
+        .get("content-length")
+        .ok()
+        .flatten()
+        .and_then(|v| v.trim().parse::<f64>().ok());
+    if total.is_some_and(|t| t > MAX_FILE_BYTES as f64) {
+        return Err(format!(
+            "it is {:.0} MiB, more than the {} MiB the studio opens",
+            total.unwrap_or(0.0) / 1048576.0,
+            MAX_FILE_BYTES >> 20
+        ));
+    }
+    let Some(body) = response.body() else {
+        return Err("the response has no body".into());
+    };
+    read_stream(body, total, id, url).await
+}

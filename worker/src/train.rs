@@ -17,7 +17,9 @@ use silvr_core::uncertainty::UncertaintyConfig;
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
-use crate::js::{get, js_text, post, post_bytes, read_stream, scope, sleep_ms};
+use crate::js::{
+    fetch_bytes, get, js_text, post, post_bytes, read_stream, scope, sleep_ms, url_file_name,
+};
 use crate::view::is_fetchable;
 use crate::{SavedRun, ToPage, TrainAction, TrainResult, TrainSettings};
 use silvr_core::train::checkpoint::Checkpoint;
@@ -169,48 +171,11 @@ pub(crate) async fn train_url(host: Host, id: u32, url: String, settings: TrainS
         return fail(&url, "only http: and https: URLs are opened");
     }
     state("loading");
-    let response = match wasm_bindgen_futures::JsFuture::from(scope().fetch_with_str(&url)).await {
-        Ok(r) => r.unchecked_into::<web_sys::Response>(),
-        Err(e) => {
-            return fail(
-                &url,
-                format!(
-                    "could not be fetched: the server is unreachable or refused the studio's origin ({})",
-                    js_text(&e)
-                ),
-            )
-        }
-    };
-    if !response.ok() {
-        return fail(
-            &url,
-            format!(
-                "the server answered HTTP {} {}",
-                response.status(),
-                response.status_text()
-            ),
-        );
-    }
-    let total = response
-        .headers()
-        .get("content-length")
-        .ok()
-        .flatten()
-        .and_then(|v| v.trim().parse::<f64>().ok());
-    let Some(body) = response.body() else {
-        return fail(&url, "the response has no body");
-    };
-    let bytes = match read_stream(body, total, id, &url).await {
+    let bytes = match fetch_bytes(&url, id).await {
         Ok(b) => b,
         Err(e) => return fail(&url, e),
     };
-    let name = url
-        .split(['?', '#'])
-        .next()
-        .and_then(|p| p.rsplit('/').next())
-        .filter(|n| !n.is_empty())
-        .unwrap_or("submap.tar")
-        .to_string();
+    let name = url_file_name(&url, "submap.tar");
     match Files::from_tar(&name, &bytes) {
         Ok(files) => run(host, id, files, settings, None).await,
         Err(e) => fail(&url, e.to_string()),

@@ -9,7 +9,7 @@ use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::spawn_local;
 use web_sys::MessageEvent;
 
-use crate::js::{get, js_text, post, post_bytes, read_stream, scope, sleep_ms};
+use crate::js::{fetch_bytes, get, post, post_bytes, read_stream, scope, sleep_ms, url_file_name};
 use crate::studio::{parse_cameras, parse_layer, Layers, MAX_FILE_BYTES, MAX_LAYERS};
 use crate::view::{is_fetchable, Camera, ViewState};
 use crate::{
@@ -607,47 +607,8 @@ async fn open_url(studio: Rc<RefCell<Studio>>, id: u32, url: String) {
     if !is_fetchable(&url) {
         return fail("only http: and https: URLs are opened".into());
     }
-    let name = url
-        .split(['?', '#'])
-        .next()
-        .and_then(|p| p.rsplit('/').next())
-        .filter(|n| !n.is_empty())
-        .unwrap_or("points.ply")
-        .to_string();
-    let scope: web_sys::WorkerGlobalScope = js_sys::global().unchecked_into();
-    let response = match wasm_bindgen_futures::JsFuture::from(scope.fetch_with_str(&url)).await {
-        Ok(r) => r.unchecked_into::<web_sys::Response>(),
-        Err(e) => {
-            return fail(format!(
-                "could not be fetched: the server is unreachable or refused the studio's origin (CORS) ({})",
-                js_text(&e)
-            ))
-        }
-    };
-    if !response.ok() {
-        return fail(format!(
-            "the server answered HTTP {} {}",
-            response.status(),
-            response.status_text()
-        ));
-    }
-    let total = response
-        .headers()
-        .get("content-length")
-        .ok()
-        .flatten()
-        .and_then(|v| v.trim().parse::<f64>().ok());
-    if total.is_some_and(|t| t > MAX_FILE_BYTES as f64) {
-        return fail(format!(
-            "it is {:.0} MiB, more than the {} MiB the studio opens",
-            total.unwrap_or(0.0) / 1048576.0,
-            MAX_FILE_BYTES >> 20
-        ));
-    }
-    let Some(body) = response.body() else {
-        return fail("the response has no body".into());
-    };
-    match read_stream(body, total, id, &url).await {
+    let name = url_file_name(&url, "points.ply");
+    match fetch_bytes(&url, id).await {
         Ok(bytes) => add_layer(&studio, id, &bytes, &name, &url),
         Err(e) => fail(e),
     }
