@@ -54,10 +54,12 @@ trunk build --release
 step "trunk build took $(elapsed "$t")"
 
 # --- 3. Rust GPU tests inside Chromium (dedicated Worker) ---
-step "wasm-bindgen-test: cargo test -p silvr-worker --target wasm32-unknown-unknown"
+# --release: the dependencies trunk just built for wasm32 are reused (a dev build compiled them all again,
+# ~75 s more on a fresh 2-core machine).
+step "wasm-bindgen-test: cargo test --release -p silvr-worker --target wasm32-unknown-unknown"
 t=$(date +%s)
 CARGO_TARGET_WASM32_UNKNOWN_UNKNOWN_RUNNER=wasm-bindgen-test-runner \
-  cargo test -p silvr-worker --target wasm32-unknown-unknown
+  cargo test --release -p silvr-worker --target wasm32-unknown-unknown
 step "wasm-bindgen-test took $(elapsed "$t")"
 
 # --- 4. the studio page end to end ---

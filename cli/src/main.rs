@@ -88,6 +88,43 @@ enum Command {
         #[arg(long)]
         keep_unknown: bool,
     },
+    /// Split a dataset into submaps by recursive normalised cuts of its keyframe graph (distance: camera
+    /// positions' nearest neighbours, as SiLVR's public code; covis: shared tracks, once `silvr poses`
+    /// exists). Each submap is a folder with a transforms.json pointing back at the dataset's images (no
+    /// copies) that `silvr train` accepts, plus manifest.json and a top-down plot.
+    Submaps {
+        /// Dataset folder (or its transforms.json).
+        dataset: PathBuf,
+        /// Output folder (submap_00/, submap_01/ ..., manifest.json, submaps.png).
+        #[arg(long)]
+        out: PathBuf,
+        /// distance or covis.
+        #[arg(long, default_value = "distance")]
+        method: String,
+        /// Cut until each submap holds at most this many images (default 300 when --count is absent).
+        #[arg(long, conflicts_with = "count")]
+        max_images: Option<usize>,
+        /// Cut into this many submaps instead.
+        #[arg(long)]
+        count: Option<usize>,
+        /// Keyframes within this many metres of a neighbouring submap's are trained by both.
+        #[arg(long, default_value_t = 2.0)]
+        overlap: f64,
+    },
+    /// Pose accuracy of a trajectory against the exact one: ATE (camera centres) and rotation error after a
+    /// robust Sim(3) alignment, and RPE of consecutive frames; both given as transforms.json files (a
+    /// synthetic dataset's transforms_prior.json against its transforms.json, say), frames matched by image.
+    EvalPoses {
+        /// The estimated poses (transforms.json, or a dataset folder holding it).
+        #[arg(long)]
+        est: PathBuf,
+        /// The exact poses (transforms.json, or a dataset folder holding it).
+        #[arg(long)]
+        gt: PathBuf,
+        /// Write the JSON report here (printed to stdout otherwise).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Measure the kernels: points/s of lidar projection (WGSL vs CPU reference) and of deskewing.
     Bench {
         /// Points per projection call.
@@ -241,6 +278,10 @@ enum Command {
         /// The archive to write (`.tar`).
         #[arg(long)]
         out: PathBuf,
+        /// Store every image downscaled by this integer factor, the intrinsics rewritten to match (the
+        /// archive trains as the folder does with `--downscale` at this factor; a smaller download).
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
+        downscale: u32,
     },
 }
 
@@ -320,6 +361,15 @@ fn main() {
         Command::BenchIngest(c) => ingest::bench(c, open_gpu),
         Command::Import(c) => ingest::import(c, open_gpu),
         Command::Export(c) => ingest::export(c),
+        Command::EvalPoses { est, gt, out } => eval_poses(&est, &gt, out.as_deref()),
+        Command::Submaps {
+            dataset,
+            out,
+            method,
+            max_images,
+            count,
+            overlap,
+        } => submaps(&dataset, &out, &method, max_images, count, overlap),
         Command::Eval {
             reconstruction,
             gt,
@@ -431,7 +481,11 @@ fn main() {
         Command::BenchSampler(a) => train::bench_sampler(&a),
         Command::Bench { points, reps, json } => bench(points, reps, json),
         Command::Serve(c) => serve::run(c),
-        Command::Pack { dataset, out } => pack(&dataset, &out),
+        Command::Pack {
+            dataset,
+            out,
+            downscale,
+        } => pack(&dataset, &out, downscale),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
@@ -439,11 +493,163 @@ fn main() {
     }
 }
 
+/// `silvr submaps`: the plan (silvr_core::submap), then one folder per submap, written under a
+/// temporary name and renamed into place as a whole.
+fn submaps(
+    dataset: &Path,
+    out: &Path,
+    method: &str,
+    max_images: Option<usize>,
+    count: Option<usize>,
+    overlap: f64,
+) -> Result<()> {
+    use silvr_core::submap::{self, Limit, Method, SubmapOptions};
+    let method = match method {
+        "distance" => Method::Distance,
+        "covis" => Method::Covis,
+        other => anyhow::bail!("--method {other}: expected distance or covis"),
+    };
+    let limit = match (count, max_images) {
+        (Some(0), _) | (_, Some(0)) => anyhow::bail!("--count and --max-images must be at least 1"),
+        (Some(c), _) => Limit::Count(c),
+        (None, m) => Limit::MaxImages(m.unwrap_or(300)),
+    };
+    if !(overlap.is_finite() && overlap >= 0.0) {
+        anyhow::bail!("--overlap {overlap}: expected a distance in metres ≥ 0");
+    }
+    let json = if dataset.is_dir() {
+        dataset.join("transforms.json")
+    } else {
+        dataset.to_path_buf()
+    };
+    let root_dir = json.parent().unwrap_or(Path::new(".")).to_path_buf();
+    let text =
+        std::fs::read_to_string(&json).with_context(|| format!("reading {}", json.display()))?;
+    let (frames, _, _) = silvr_core::dataset::parse_frames(&text, &json)?;
+    let value: serde_json::Value = serde_json::from_str(&text)?;
+    let opts = SubmapOptions {
+        method,
+        limit,
+        overlap_m: overlap,
+        neighbours: 10,
+    };
+    let plan = submap::plan(&frames, &json, &opts)?;
+    if out.exists() {
+        anyhow::bail!("{} exists; choose a new folder", out.display());
+    }
+    let parent = out
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+    let tmp = parent.join(format!(
+        ".{}.partial",
+        out.file_name()
+            .map(|n| n.to_string_lossy())
+            .unwrap_or_default()
+    ));
+    let _ = std::fs::remove_dir_all(&tmp);
+    // The way from a submap's folder (out/submap_k/) back to the dataset.
+    let prefix = {
+        let abs = |p: &Path| -> Result<PathBuf> {
+            std::path::absolute(p).with_context(|| format!("resolving {}", p.display()))
+        };
+        let rel = relative_path(&abs(&root_dir)?, &abs(out)?.join("submap_00"));
+        let s = rel.to_string_lossy().replace('\\', "/");
+        if s.is_empty() {
+            String::new()
+        } else {
+            format!("{s}/")
+        }
+    };
+    for sub in &plan.submaps {
+        let dir = tmp.join(&sub.name);
+        std::fs::create_dir_all(&dir)?;
+        let tf = submap::submap_transforms(&value, sub, &prefix);
+        std::fs::write(dir.join("transforms.json"), serde_json::to_vec_pretty(&tf)?)?;
+    }
+    std::fs::write(tmp.join("manifest.json"), serde_json::to_vec_pretty(&plan)?)?;
+    std::fs::write(
+        tmp.join("submaps.png"),
+        silvr_core::eval::plot::png_bytes(&submap::plot(&plan)),
+    )?;
+    std::fs::rename(&tmp, out).with_context(|| format!("moving {} into place", out.display()))?;
+    for s in &plan.submaps {
+        eprintln!(
+            "{}: {} keyframes + {} shared, {} images",
+            s.name,
+            s.keyframes.len(),
+            s.overlap.len(),
+            s.frames.len()
+        );
+    }
+    eprintln!(
+        "{} submaps of {} keyframes by {:?} (cut weight {:.1}) in {}; train one with: silvr train {}",
+        plan.submaps.len(),
+        plan.nodes.len(),
+        plan.method,
+        plan.cut_weight,
+        out.display(),
+        out.join("submap_00").display()
+    );
+    Ok(())
+}
+
+/// `target` relative to the folder `base` (both absolute): `../../dataset` and the like.
+fn relative_path(target: &Path, base: &Path) -> PathBuf {
+    let t: Vec<_> = target.components().collect();
+    let b: Vec<_> = base.components().collect();
+    let common = t.iter().zip(&b).take_while(|(x, y)| x == y).count();
+    let mut rel = PathBuf::new();
+    for _ in common..b.len() {
+        rel.push("..");
+    }
+    for c in &t[common..] {
+        rel.push(c.as_os_str());
+    }
+    rel
+}
+
+/// `silvr eval-poses`: ATE / rotation / RPE of one transforms.json against another.
+fn eval_poses(est: &Path, gt: &Path, out: Option<&Path>) -> Result<()> {
+    let file = |p: &Path| {
+        if p.is_dir() {
+            p.join("transforms.json")
+        } else {
+            p.to_path_buf()
+        }
+    };
+    let e = silvr_core::eval::poses::compare_transforms(&file(est), &file(gt))?;
+    eprintln!("{}", pose_line(&e));
+    let json = serde_json::to_string_pretty(&e)?;
+    match out {
+        Some(p) => write_atomic(p, json.as_bytes())?,
+        None => println!("{json}"),
+    }
+    Ok(())
+}
+
+/// One line of pose errors for the terminal.
+fn pose_line(e: &silvr_core::eval::poses::PoseErrors) -> String {
+    format!(
+        "{} frames ({} in the Sim(3) fit, scale {:.4}): ATE {:.3} m RMSE, {:.3} m median, {:.3} m max; rotation {:.2}° RMSE; RPE {:.3} m, {:.2}° per step",
+        e.frames,
+        e.inliers,
+        e.scale,
+        e.ate_rmse_m,
+        e.ate_median_m,
+        e.ate_max_m,
+        e.rot_rmse_deg,
+        e.rpe_trans_rmse_m,
+        e.rpe_rot_rmse_deg
+    )
+}
+
 /// `silvr pack`: one archive of a dataset's training inputs (written under a temporary name, then renamed).
-fn pack(dataset: &Path, out: &Path) -> Result<()> {
+fn pack(dataset: &Path, out: &Path, downscale: u32) -> Result<()> {
     use silvr_core::source;
     let (src, json) = source::open(dataset)?;
-    let (files, skipped) = source::pack(src.as_ref(), &json)?;
+    let (files, skipped) = silvr_core::train::data::pack(src.as_ref(), &json, downscale)?;
     for s in &skipped {
         eprintln!("warning: left out {s}");
     }
@@ -451,9 +657,14 @@ fn pack(dataset: &Path, out: &Path) -> Result<()> {
     silvr_core::dataset::write_atomic(out, &tar)
         .with_context(|| format!("writing {}", out.display()))?;
     eprintln!(
-        "packed {} files ({:.1} MB) from {} into {}",
+        "packed {} files ({:.1} MB{}) from {} into {}",
         files.len(),
         tar.len() as f64 / 1e6,
+        if downscale > 1 {
+            format!(", images downscaled by {downscale}")
+        } else {
+            String::new()
+        },
         dataset.display(),
         out.display()
     );
@@ -726,6 +937,22 @@ fn demo(
     }
     let synth_s = t.elapsed().as_secs_f64();
 
+    // The SLAM-like prior the poses stage will start from, against the exact poses training uses today.
+    let prior_poses = match silvr_core::eval::poses::compare_transforms(
+        &dataset.join("transforms_prior.json"),
+        &dataset.join("transforms.json"),
+    ) {
+        Ok(e) => {
+            eprintln!("[demo] prior poses: {}", pose_line(&e));
+            serde_json::to_value(&e)?
+        }
+        // A dataset generated before the prior existed (reused with --reuse-dataset).
+        Err(e) => {
+            eprintln!("[demo] no prior poses to score: {e}");
+            serde_json::Value::Null
+        }
+    };
+
     // Lidar-only baseline: the deskewed sweeps in the world frame.
     let t = Instant::now();
     let cloud = map::lidar_map(&dataset)?;
@@ -767,7 +994,7 @@ fn demo(
             downscale: overrides.downscale,
             seed,
             export_rays: demo_export_rays(name),
-            render_views: None,
+            render_views: demo_render_views(name),
             export_depth: ExportDepth::default(),
             quiet: true,
             // The demo reports PSNR/SSIM; normal renders are `silvr train`'s.
@@ -847,6 +1074,8 @@ fn demo(
         "dataset": dataset,
         "methods": methods,
         "uncertainty": uncertainty_block,
+        // Training uses the exact poses until the poses stage lands (issue: poses and submaps).
+        "poses": { "prior": prior_poses, "trained_on": "exact" },
         "timing": timing,
     });
     let path = out.join("report.json");
@@ -883,6 +1112,15 @@ fn demo_training(preset: &str) -> (u32, &'static str, usize) {
     match preset {
         "ci" => (300, "small", 1024),
         _ => (5000, "nerfacto", 4096),
+    }
+}
+
+/// Held-out views rendered and scored: half of the `ci` street's six (one per camera, spread along the
+/// path; rendering all took as long as a third of the training on 2 cores), all of the others.
+fn demo_render_views(preset: &str) -> Option<usize> {
+    match preset {
+        "ci" => Some(3),
+        _ => None,
     }
 }
 

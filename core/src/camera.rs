@@ -270,6 +270,24 @@ impl CameraModel {
         }
     }
 
+    /// The camera of an image downscaled by the integer `f` the way the loader and `silvr pack` do it:
+    /// each output pixel stands for an f×f block and the last `width mod f` columns (rows) are dropped, so
+    /// the size is ⌊width / f⌋ and the mapping is exactly `c' = (c + 0.5) / f − 0.5` (a rounded size with
+    /// [`Self::scaled`]'s achieved ratio would shift every ray of an image whose width is not a multiple).
+    pub fn downscaled(&self, f: u32) -> CameraModel {
+        let f = f.max(1);
+        let s = 1.0 / f as f64;
+        CameraModel {
+            width: (self.width / f).max(1),
+            height: (self.height / f).max(1),
+            fx: self.fx * s,
+            fy: self.fy * s,
+            cx: (self.cx + 0.5) * s - 0.5,
+            cy: (self.cy + 0.5) * s - 0.5,
+            distortion: self.distortion,
+        }
+    }
+
     /// Checks that the intrinsics are usable (finite positive focal lengths, non-zero size, finite principal
     /// point and coefficients).
     pub fn validate(&self) -> Result<(), CameraError> {

@@ -20,7 +20,7 @@ use crate::pointcloud::{self, PointCloud};
 use crate::train::checkpoint::{Checkpoint, CheckpointError};
 use crate::train::data::{DataError, TrainData};
 use crate::train::export::{ExportDepth, ViewScore};
-use crate::train::{Backend, Mode, TrainConfig, Trainer};
+use crate::train::{Backend, Engine, Mode, TrainConfig, Trainer};
 use crate::uncertainty::{self, filter, Fisher, UncertaintyConfig};
 
 /// Why a job stopped, naming the file, the stage or the step.
@@ -153,7 +153,7 @@ pub struct HeldOut {
 pub struct FinishOptions {
     /// The dataset as the user named it (recorded in `train.json`).
     pub dataset: String,
-    /// Held-out views to render and score (`None`: all).
+    /// Held-out views to render and score, spread along the held-out list (`None`: all).
     pub render_views: Option<usize>,
     /// Normals for the first held-out view and the exported points.
     pub view_normals: bool,
@@ -217,6 +217,16 @@ pub fn mean(v: impl Iterator<Item = f64>) -> f64 {
     }
 }
 
+/// A step's error; a batch that outgrew the device's limit says which setting to change.
+fn too_large(e: GpuError, rays: usize) -> JobError {
+    match e {
+        e @ GpuError::BufferTooLarge { .. } => JobError::Invalid(format!(
+            "{e}: use fewer rays per batch than {rays}, or a smaller model"
+        )),
+        e => JobError::Gpu(e),
+    }
+}
+
 /// A training run in progress.
 pub struct TrainJob {
     pub trainer: Trainer,
@@ -241,7 +251,12 @@ impl TrainJob {
         if let Some((a, b)) = spec.depth_sigma {
             config.schedule_sigma(a, b);
         }
-        Ok(Self::around(Trainer::new(data, model, config, backend)?))
+        let trainer = Trainer::new(data, model, config, backend)?;
+        if let Engine::Wgpu(e) = &trainer.engine {
+            e.check_batch(spec.rays)
+                .map_err(|e| too_large(e, spec.rays))?;
+        }
+        Ok(Self::around(trainer))
     }
 
     /// Continues a checkpointed run on the same dataset, now to `steps` steps.
@@ -272,13 +287,11 @@ impl TrainJob {
     pub async fn step(&mut self) -> Result<StepReport, JobError> {
         let t0 = Instant::now();
         let rays = self.trainer.config.rays_per_batch;
-        let s = self.trainer.train_step().await.map_err(|e| match e {
-            // Say which setting to change: the batch is what outgrew the device's limit.
-            e @ GpuError::BufferTooLarge { .. } => JobError::Invalid(format!(
-                "{e}: use fewer rays per batch than {rays}, or a smaller model"
-            )),
-            e => JobError::Gpu(e),
-        })?;
+        let s = self
+            .trainer
+            .train_step()
+            .await
+            .map_err(|e| too_large(e, rays))?;
         self.train_s += t0.elapsed().as_secs_f64();
         let t = &self.trainer;
         let session = (t.step - self.start_step) as f64;
@@ -357,16 +370,14 @@ impl TrainJob {
         let t_render = Instant::now();
         let mut rendered = 0usize;
         let mut views = Vec::new();
-        let count = self
-            .trainer
-            .data
-            .val
-            .len()
-            .min(opts.render_views.unwrap_or(usize::MAX));
+        let held = self.trainer.data.val.len();
+        let count = held.min(opts.render_views.unwrap_or(usize::MAX));
         for k in 0..count {
             *stage.borrow_mut() = ("render", Instant::now());
             let normals = opts.view_normals && k == 0;
-            let h = self.held_out(k, normals).await?;
+            // Fewer views than are held out: spread along the list (it runs along the trajectory,
+            // cameras interleaved), not the first few.
+            let h = self.held_out(k * held / count, normals).await?;
             rendered += (h.width * h.height) as usize;
             sink.put(&format!("renders/{}_rgb.png", h.stem), &h.rgb_png)?;
             sink.put(&format!("renders/{}_depth.png", h.stem), &h.depth_png)?;

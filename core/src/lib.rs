@@ -29,6 +29,7 @@ pub mod rig;
 pub mod sampler;
 pub mod shaders;
 pub mod source;
+pub mod submap;
 pub mod synthetic;
 pub mod train;
 pub mod uncertainty;

@@ -269,59 +269,6 @@ pub fn open(path: &Path) -> Result<(Box<dyn Source>, String), DatasetError> {
     Ok((Box::new(Dir(root)), name))
 }
 
-/// What `silvr pack` puts in an archive: `transforms.json`, every frame's image, lidar depth, normals and
-/// sky mask (what training reads), and the small files that say what the data is (`manifest.json`,
-/// `calib/rig.json`, `calib/lidar.json`). Raw sweeps and ground truth stay out (they are most of a
-/// dataset's bytes and training does not read them). A frame whose image is missing is left out and
-/// named in the second value (the loader skips such frames too, as nerfstudio captures often list more
-/// images than they ship); a missing lidar file of a present image is an error naming it.
-pub fn pack(src: &dyn Source, json_rel: &str) -> Result<(Files, Vec<String>), DatasetError> {
-    let json_path = src.path(json_rel);
-    let text = src.read(json_rel)?;
-    let text = std::str::from_utf8(&text).map_err(|_| DatasetError::Format {
-        path: json_path.clone(),
-        detail: "is not UTF-8 text (a JSON file was expected)".into(),
-    })?;
-    let (frames, _, _) = crate::dataset::parse_frames(text, &json_path)?;
-    let name = src.root().display().to_string();
-    let mut out = Files::new(name);
-    out.insert("transforms.json", text.as_bytes().to_vec())?;
-    let mut skipped = Vec::new();
-    for fr in &frames {
-        if !src.exists(&fr.file_path) {
-            skipped.push(format!("{}: image file missing", fr.file_path));
-            continue;
-        }
-        let paths = [
-            Some(&fr.file_path),
-            fr.depth_file_path.as_ref(),
-            fr.normal_file_path.as_ref(),
-            fr.sky_mask_path.as_ref(),
-        ];
-        for rel in paths.into_iter().flatten() {
-            let bytes = src.read(rel)?.into_owned();
-            out.insert(rel, bytes).map_err(|_| DatasetError::Format {
-                path: json_path.clone(),
-                detail: format!(
-                    "{rel}: points outside the dataset folder; pack copies only files inside it"
-                ),
-            })?;
-        }
-    }
-    if skipped.len() == frames.len() {
-        return Err(DatasetError::Format {
-            path: json_path,
-            detail: "none of the frames' image files exist".into(),
-        });
-    }
-    for extra in ["manifest.json", "calib/rig.json", "calib/lidar.json"] {
-        if src.exists(extra) {
-            out.insert(extra, src.read(extra)?.into_owned())?;
-        }
-    }
-    Ok((out, skipped))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

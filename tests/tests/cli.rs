@@ -67,6 +67,10 @@ fn demo_ci_on_wgsl_reports_lidar_vision_and_silvr_with_silvr_beating_vision() {
     );
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    // The SLAM-like prior the poses stage will start from is scored against the exact poses.
+    let prior = &report["poses"]["prior"];
+    let ate = prior["ate_rmse_m"].as_f64().unwrap_or(f64::NAN);
+    assert!(ate > 0.005 && ate < 0.5, "prior ATE {ate} m: {prior}");
     let lidar = &report["methods"]["lidar_only"];
     for key in [
         "accuracy_m",

@@ -15,6 +15,7 @@ mod kdtree;
 pub mod metrics;
 pub mod occupancy;
 pub mod plot;
+pub mod poses;
 pub mod report;
 
 pub use image::{psnr, psnr_rgb8, ssim, ssim_rgb8, ImageMetricError};

@@ -11,8 +11,8 @@ use serde::Serialize;
 use super::raycast::{Scene, Shape, GROUND};
 use super::sensors::{render_camera, simulate_sweep, LidarNoise, RenderOptions, Sweep};
 use super::world::{Label, World};
-use super::Preset;
-use crate::dataset::{self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter};
+use super::{prior, Preset};
+use crate::dataset::{self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, NsFrame};
 use crate::eval::occupancy::OccupancyGrid;
 use crate::geometry::{Se3, Trajectory};
 use crate::gpu::{Gpu, GpuError};
@@ -21,7 +21,7 @@ use crate::pointcloud::{write_ply_bytes, PointCloud};
 use crate::rig::RigCamera;
 
 /// Generator version, recorded in the manifest; bump when output bytes change for the same seed.
-pub const GENERATOR_VERSION: &str = "silvr-synth 1";
+pub const GENERATOR_VERSION: &str = "silvr-synth 2";
 
 /// Why generation failed.
 #[derive(Debug, thiserror::Error)]
@@ -409,6 +409,43 @@ pub async fn generate_recording(
     // Hold out every 10th keyframe (all its cameras) for novel-view evaluation.
     let transforms = products::transforms(frames, products::every_tenth_keyframe);
     o.write_json("transforms.json", &transforms)?;
+    // The SLAM-like prior: the same frames at the prior's poses (the rig moves with its drifted base;
+    // extrinsics exact), its TUM files, and which keyframes carry a gross error.
+    let (prior, gross) = prior::prior_trajectory(&base_poses, &preset.prior, preset.seed);
+    let mut prior_tf = transforms.clone();
+    for f in &mut prior_tf.frames {
+        let k = f.keyframe.unwrap_or(0);
+        let (model, cam) = f
+            .camera(Path::new("transforms.json"))
+            .map_err(|e| SynthError::Other(e.to_string()))?;
+        let moved = NsFrame::new(
+            f.file_path.clone(),
+            &model,
+            &(prior[k] * base_poses[k].inverse() * cam),
+        );
+        f.transform_matrix = moved.transform_matrix;
+    }
+    o.write_json("transforms_prior.json", &prior_tf)?;
+    o.write(
+        "poses/prior_base_tum.txt",
+        dataset::tum_string(&image_times, &prior).as_bytes(),
+    )?;
+    for (i, cam) in preset.rig.cameras.iter().enumerate() {
+        let poses: Vec<Se3> = (0..prior.len())
+            .map(|k| prior[k] * base_poses[k].inverse() * cam_poses[i][k])
+            .collect();
+        o.write(
+            &format!("poses/prior_{}_tum.txt", cam.name),
+            dataset::tum_string(&image_times, &poses).as_bytes(),
+        )?;
+    }
+    o.write_json(
+        "poses/prior.json",
+        &serde_json::json!({
+            "params": preset.prior,
+            "gross_keyframes": gross,
+        }),
+    )?;
     let labels = Label::ALL.iter().map(|l| (*l as u8, l.name())).collect();
     let encodings = BTreeMap::from([
         ("images", "8-bit RGB PNG, display gamma 2.2"),

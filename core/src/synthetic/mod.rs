@@ -7,6 +7,7 @@
 #[cfg(not(target_arch = "wasm32"))]
 pub mod bag;
 pub mod generate;
+pub mod prior;
 pub mod raycast;
 pub mod sensors;
 pub mod trajectory;
@@ -41,6 +42,9 @@ pub struct Preset {
     pub gt_spacing: f64,
     /// Voxel size of the observed-space grid (m).
     pub observed_voxel: f64,
+    /// How the SLAM-like prior trajectory (`transforms_prior.json`, `poses/prior_*`) errs.
+    #[serde(default)]
+    pub prior: prior::PriorParams,
 }
 
 impl Preset {
@@ -61,6 +65,7 @@ impl Preset {
             pixel_noise: 1.0,
             gt_spacing: 0.03,
             observed_voxel: 0.1,
+            prior: prior::PriorParams::default(),
         }
     }
 
@@ -95,6 +100,7 @@ impl Preset {
             pixel_noise: 1.0,
             gt_spacing: 0.03,
             observed_voxel: 0.1,
+            prior: prior::PriorParams::default(),
         }
     }
 

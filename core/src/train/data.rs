@@ -15,7 +15,7 @@ use crate::dataset::{self, NsFrame};
 use crate::geometry::Se3;
 use crate::lidar::images::{NO_NORMAL, SKY_DEPTH};
 use crate::render::RayTarget;
-use crate::source::Source;
+use crate::source::{Files, Source};
 
 /// Why a dataset could not be loaded, naming the file.
 #[derive(Debug, thiserror::Error)]
@@ -264,11 +264,7 @@ impl TrainData {
             .collect();
         for (i, ((fr, model, pose), px)) in kept.iter().zip(loaded).enumerate() {
             let (rgb, depth, normals, sky, w, h) = px?;
-            let model = if f > 1 {
-                model.scaled(1.0 / f as f64)
-            } else {
-                *model
-            };
+            let model = model.downscaled(f);
             let camera = match cameras.iter().position(|c| *c == model) {
                 Some(c) => c,
                 None => {
@@ -429,6 +425,147 @@ fn load_pixels(
         w / f.max(1),
         h / f.max(1),
     ))
+}
+
+/// What `silvr pack` puts in an archive: `transforms.json`, every frame's image, lidar depth, normals and
+/// sky mask (what training reads), and the small files that say what the data is (`manifest.json`,
+/// `calib/rig.json`, `calib/lidar.json`). Raw sweeps and ground truth stay out (they are most of a
+/// dataset's bytes and training does not read them). A frame whose image is missing is left out and
+/// named in the second value (the loader skips such frames too, as nerfstudio captures often list more
+/// images than they ship); a missing lidar file of a present image is an error naming it.
+///
+/// With `downscale` f > 1 every image is stored as the loader would read it at that downscale (colour
+/// averaged over f×f blocks, lidar depth and normals from the return nearest each block's centre, sky
+/// masks by nearest neighbour) and the intrinsics in `transforms.json` are rewritten to match
+/// ([`CameraModel::downscaled`]), so the archive loaded as it is equals the folder loaded at f: a
+/// smaller download for the studio, and the same training. PNG files stay PNG (lossless); JPEG
+/// images are re-encoded as JPEG at quality 95.
+pub fn pack(
+    src: &dyn Source,
+    json_rel: &str,
+    downscale: u32,
+) -> Result<(Files, Vec<String>), DataError> {
+    let json_path = src.path(json_rel);
+    let text = src.read(json_rel)?;
+    let text = std::str::from_utf8(&text)
+        .map_err(|_| bad(&json_path, "is not UTF-8 text (a JSON file was expected)"))?;
+    let (frames, _, _) = dataset::parse_frames(text, &json_path)?;
+    let f = downscale.max(1);
+    let mut out = Files::new(src.root().display().to_string());
+    let mut skipped = Vec::new();
+    let outside = |rel: &str| {
+        bad(
+            &json_path,
+            format!("{rel}: points outside the dataset folder; pack copies only files inside it"),
+        )
+    };
+    for fr in &frames {
+        if !src.exists(&fr.file_path) {
+            skipped.push(format!("{}: image file missing", fr.file_path));
+            continue;
+        }
+        if f == 1 {
+            let paths = [
+                Some(&fr.file_path),
+                fr.depth_file_path.as_ref(),
+                fr.normal_file_path.as_ref(),
+                fr.sky_mask_path.as_ref(),
+            ];
+            for rel in paths.into_iter().flatten() {
+                let bytes = src.read(rel)?.into_owned();
+                out.insert(rel, bytes).map_err(|_| outside(rel))?;
+            }
+            continue;
+        }
+        let (model, _) = fr.camera(&json_path)?;
+        let (rgb, depth, normals, sky, w, h) = load_pixels(src, fr, &model, f, false)?;
+        let jpeg = {
+            let l = fr.file_path.to_ascii_lowercase();
+            l.ends_with(".jpg") || l.ends_with(".jpeg")
+        };
+        let image = if jpeg {
+            jpeg_rgb(w, h, &rgb)
+        } else {
+            dataset::png_rgb(w, h, &rgb)
+        };
+        let files = [
+            (Some(&fr.file_path), Some(image)),
+            (
+                fr.depth_file_path.as_ref(),
+                (!depth.is_empty()).then(|| dataset::png_gray16(w, h, &depth)),
+            ),
+            (
+                fr.normal_file_path.as_ref(),
+                (!normals.is_empty()).then(|| dataset::png_rgb(w, h, &normals)),
+            ),
+            (
+                fr.sky_mask_path.as_ref(),
+                (!sky.is_empty()).then(|| dataset::png_gray8(w, h, &sky)),
+            ),
+        ];
+        for (rel, bytes) in files {
+            if let (Some(rel), Some(bytes)) = (rel, bytes) {
+                out.insert(rel, bytes).map_err(|_| outside(rel))?;
+            }
+        }
+    }
+    if skipped.len() == frames.len() {
+        return Err(bad(&json_path, "none of the frames' image files exist"));
+    }
+    let json = if f == 1 {
+        text.as_bytes().to_vec()
+    } else {
+        downscale_intrinsics(text, f, &json_path)?
+    };
+    out.insert("transforms.json", json)?;
+    for extra in ["manifest.json", "calib/rig.json", "calib/lidar.json"] {
+        if src.exists(extra) {
+            out.insert(extra, src.read(extra)?.into_owned())?;
+        }
+    }
+    Ok((out, skipped))
+}
+
+/// `transforms.json` with every intrinsic (top level and per frame) rewritten for images downscaled by
+/// `f` ([`CameraModel::downscaled`]); everything else as it was.
+fn downscale_intrinsics(text: &str, f: u32, path: &Path) -> Result<Vec<u8>, DataError> {
+    use serde_json::Value;
+    let mut root: Value =
+        serde_json::from_str(text).map_err(|e| bad(path, format!("not JSON: {e}")))?;
+    let s = 1.0 / f as f64;
+    let scale = |o: &mut serde_json::Map<String, Value>| {
+        for (k, v) in o.iter_mut() {
+            let Some(x) = v.as_f64() else { continue };
+            // nerfstudio's principal point counts from the pixel's corner (ours from its centre, so
+            // the centre-based `(c + 0.5) / f − 0.5` is a plain division here).
+            let new = match k.as_str() {
+                "fl_x" | "fl_y" | "cx" | "cy" => Value::from(x * s),
+                "w" | "h" => Value::from((x.round() as u64 / f as u64).max(1)),
+                _ => continue,
+            };
+            *v = new;
+        }
+    };
+    if let Some(o) = root.as_object_mut() {
+        scale(o);
+        if let Some(frames) = o.get_mut("frames").and_then(Value::as_array_mut) {
+            for fr in frames.iter_mut().filter_map(Value::as_object_mut) {
+                scale(fr);
+            }
+        }
+        o.insert("downscale".into(), Value::from(f));
+    }
+    Ok(serde_json::to_vec_pretty(&root).expect("a JSON value serialises"))
+}
+
+/// Encodes an RGB image as JPEG at quality 95 (for JPEG sources packed downscaled).
+fn jpeg_rgb(w: u32, h: u32, px: &[[u8; 3]]) -> Vec<u8> {
+    let flat: Vec<u8> = px.iter().flatten().copied().collect();
+    let mut out = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95)
+        .encode(&flat, w, h, image::ExtendedColorType::Rgb8)
+        .expect("in-memory JPEG encoding of a correctly sized buffer cannot fail");
+    out
 }
 
 /// Unit ray directions of every pixel centre (OpenCV convention), NaN where unprojection fails.

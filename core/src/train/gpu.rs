@@ -309,6 +309,22 @@ impl GpuEngine {
         best
     }
 
+    /// Refuses a training batch of `rays` rays whose largest work buffer passes the binding limit even
+    /// with no normal rays (a lower bound; the exact check is at allocation), so a run asked for an
+    /// impossible batch fails before its first step builds one.
+    pub fn check_batch(&self, rays: usize) -> Result<(), GpuError> {
+        let max = self.gpu.max_binding_bytes();
+        let (what, words) = self.largest_work_buffer(rays.max(1), 0);
+        if words as u64 * 4 > max {
+            return Err(GpuError::BufferTooLarge {
+                what: format!("the largest {what} of a {rays}-ray batch"),
+                bytes: words as u64 * 4,
+                max,
+            });
+        }
+        Ok(())
+    }
+
     /// The most rays one inference batch may hold before a work buffer would pass the device's binding
     /// limit (a tenth of headroom for the per-ray buffers the estimate leaves out).
     pub fn max_rays(&self, normals: bool) -> usize {

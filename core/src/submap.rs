@@ -1,0 +1,571 @@
+//! Submaps: the trajectory split into parts that are trained separately (the paper's large-scale
+//! section), by recursive normalised cuts (Shi & Malik) of a graph over the keyframes.
+//!
+//! A node is a keyframe (every camera of the rig at one instant, which see the same place from one
+//! spot), or a single image where a dataset has no keyframes. Edges come from one of two affinities:
+//! - **distance** (what SiLVR's public code does: scikit-learn's `SpectralClustering` with
+//!   `affinity="nearest_neighbors"` on camera positions, i.e. the symmetrised 10-nearest-neighbour graph);
+//! - **co-visibility** (the paper: edge weight = tracks two keyframes share), once `silvr poses` writes
+//!   tracks.
+//!
+//! Each cut takes the Fiedler vector of the normalised Laplacian of the part's graph and the threshold
+//! along it with the smallest normalised cut (Shi–Malik's sweep); disconnected parts are split into
+//! their components first. Parts are cut until every one holds at most `max_images` images, or until
+//! there are `count` parts (the largest cut first). Then each part grows by the keyframes of its
+//! neighbours within `overlap_m` of one of its own, so the fields overlap at the boundaries.
+//!
+//! Eigenvectors: nalgebra's dense symmetric solver over one part at a time (keyframes, not images: a
+//! 2,000-keyframe mission is an 8 s solve at the top cut and far less below); the sparse Lanczos of
+//! faer is the way up for co-visibility graphs over images.
+
+use glam::DVec3;
+use nalgebra::{DMatrix, SymmetricEigen};
+use serde::Serialize;
+
+/// A weighted undirected graph over nodes `0..n` (adjacency lists, both directions stored).
+#[derive(Clone, Debug, Default)]
+pub struct Graph {
+    pub adj: Vec<Vec<(usize, f64)>>,
+}
+
+impl Graph {
+    pub fn new(n: usize) -> Self {
+        Graph {
+            adj: vec![Vec::new(); n],
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.adj.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.adj.is_empty()
+    }
+
+    /// Adds `w` to the edge i–j (both directions).
+    pub fn add(&mut self, i: usize, j: usize, w: f64) {
+        if i == j || w <= 0.0 {
+            return;
+        }
+        for (a, b) in [(i, j), (j, i)] {
+            match self.adj[a].iter_mut().find(|e| e.0 == b) {
+                Some(e) => e.1 += w,
+                None => self.adj[a].push((b, w)),
+            }
+        }
+    }
+
+    /// Total weight of the edges between different parts (each edge once).
+    pub fn cut_weight(&self, parts: &[Vec<usize>]) -> f64 {
+        let mut label = vec![usize::MAX; self.len()];
+        for (p, nodes) in parts.iter().enumerate() {
+            for &n in nodes {
+                label[n] = p;
+            }
+        }
+        let mut w = 0.0;
+        for (i, edges) in self.adj.iter().enumerate() {
+            for &(j, x) in edges {
+                if i < j && label[i] != label[j] {
+                    w += x;
+                }
+            }
+        }
+        w
+    }
+}
+
+/// The distance affinity of SiLVR's public code: each node joined to its `k` nearest neighbours by
+/// position (weight 1; an edge both ways counts once), symmetrised.
+pub fn distance_graph(positions: &[DVec3], k: usize) -> Graph {
+    let n = positions.len();
+    let mut g = Graph::new(n);
+    for i in 0..n {
+        let mut d: Vec<(f64, usize)> = (0..n)
+            .filter(|&j| j != i)
+            .map(|j| (positions[i].distance_squared(positions[j]), j))
+            .collect();
+        d.sort_by(|a, b| a.0.total_cmp(&b.0));
+        for &(_, j) in d.iter().take(k) {
+            // Connectivity, not a sum: the symmetrised kNN graph has weight 1 on each edge.
+            if !g.adj[i].iter().any(|e| e.0 == j) {
+                g.add(i, j, 1.0);
+            }
+        }
+    }
+    g
+}
+
+/// When to stop cutting.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Limit {
+    /// Cut until every part holds at most this many images.
+    MaxImages(usize),
+    /// Cut (largest part first) until there are this many parts.
+    Count(usize),
+}
+
+/// Splits the nodes of `g` (node i holding `images[i]` images) into parts, each sorted.
+pub fn partition(g: &Graph, images: &[usize], limit: Limit) -> Vec<Vec<usize>> {
+    let size = |p: &[usize]| p.iter().map(|&i| images[i]).sum::<usize>();
+    let mut parts: Vec<Vec<usize>> = vec![(0..g.len()).collect()];
+    // The part to cut next: the largest with more than one keyframe.
+    while let Some(k) = (0..parts.len())
+        .filter(|&k| parts[k].len() > 1)
+        .max_by_key(|&k| size(&parts[k]))
+    {
+        let go = match limit {
+            Limit::MaxImages(m) => size(&parts[k]) > m.max(1),
+            Limit::Count(c) => parts.len() < c,
+        };
+        if !go {
+            break;
+        }
+        let (a, b) = bisect(g, &parts[k]);
+        parts[k] = a;
+        parts.push(b);
+    }
+    for p in &mut parts {
+        p.sort_unstable();
+    }
+    // In path order (by first node), so submap 0 is where the trajectory starts.
+    parts.sort_by_key(|p| p[0]);
+    parts
+}
+
+/// One normalised cut of the subgraph on `nodes` (at least 2): its components when it is disconnected
+/// (the largest against the rest), else Shi–Malik's sweep along the Fiedler vector.
+fn bisect(g: &Graph, nodes: &[usize]) -> (Vec<usize>, Vec<usize>) {
+    let m = nodes.len();
+    let mut local = vec![usize::MAX; g.len()];
+    for (k, &n) in nodes.iter().enumerate() {
+        local[n] = k;
+    }
+    let mut w = DMatrix::<f64>::zeros(m, m);
+    for (k, &n) in nodes.iter().enumerate() {
+        for &(j, x) in &g.adj[n] {
+            if local[j] != usize::MAX {
+                w[(k, local[j])] = x;
+            }
+        }
+    }
+    let deg: Vec<f64> = (0..m).map(|i| w.row(i).sum()).collect();
+    // Components (isolated nodes included).
+    let comp = components(&w);
+    let count = comp.iter().copied().max().map_or(0, |c| c + 1);
+    if count > 1 {
+        let mut sizes = vec![0usize; count];
+        for &c in &comp {
+            sizes[c] += 1;
+        }
+        let big = (0..count).max_by_key(|&c| sizes[c]).unwrap_or(0);
+        let (a, b): (Vec<usize>, Vec<usize>) = (0..m).partition(|&i| comp[i] == big);
+        let take = |v: Vec<usize>| v.into_iter().map(|i| nodes[i]).collect();
+        return (take(a), take(b));
+    }
+    // L_sym = I − D^-½ W D^-½; its second-smallest eigenvector z, and y = D^-½ z.
+    let inv_sqrt: Vec<f64> = deg.iter().map(|&d| 1.0 / d.max(1e-300).sqrt()).collect();
+    let mut l = DMatrix::<f64>::identity(m, m);
+    for i in 0..m {
+        for j in 0..m {
+            l[(i, j)] -= inv_sqrt[i] * w[(i, j)] * inv_sqrt[j];
+        }
+    }
+    let eig = SymmetricEigen::new(l);
+    let mut order: Vec<usize> = (0..m).collect();
+    order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
+    let z = eig.eigenvectors.column(order[1]);
+    let y: Vec<f64> = (0..m).map(|i| z[i] * inv_sqrt[i]).collect();
+    // Sweep: nodes sorted by y; each prefix a candidate side, Ncut = cut/assoc(A) + cut/assoc(B).
+    let mut by_y: Vec<usize> = (0..m).collect();
+    by_y.sort_by(|&a, &b| y[a].total_cmp(&y[b]).then(a.cmp(&b)));
+    let total: f64 = deg.iter().sum();
+    let mut in_a = vec![false; m];
+    let (mut cut, mut assoc_a) = (0.0, 0.0);
+    let mut best = (f64::INFINITY, 1);
+    for (k, &i) in by_y.iter().enumerate().take(m - 1) {
+        // Moving i into A: its edges to A leave the cut, its edges to B join it.
+        for j in 0..m {
+            let x = w[(i, j)];
+            if x != 0.0 {
+                if in_a[j] {
+                    cut -= x;
+                } else if j != i {
+                    cut += x;
+                }
+            }
+        }
+        in_a[i] = true;
+        assoc_a += deg[i];
+        let assoc_b = total - assoc_a;
+        let ncut = cut / assoc_a.max(1e-300) + cut / assoc_b.max(1e-300);
+        if ncut < best.0 {
+            best = (ncut, k + 1);
+        }
+    }
+    let mut a: Vec<usize> = by_y[..best.1].iter().map(|&i| nodes[i]).collect();
+    let mut b: Vec<usize> = by_y[best.1..].iter().map(|&i| nodes[i]).collect();
+    a.sort_unstable();
+    b.sort_unstable();
+    (a, b)
+}
+
+/// Connected component of each node of the dense adjacency `w`.
+fn components(w: &DMatrix<f64>) -> Vec<usize> {
+    let m = w.nrows();
+    let mut comp = vec![usize::MAX; m];
+    let mut next = 0;
+    for s in 0..m {
+        if comp[s] != usize::MAX {
+            continue;
+        }
+        let mut stack = vec![s];
+        comp[s] = next;
+        while let Some(i) = stack.pop() {
+            for j in 0..m {
+                if w[(i, j)] != 0.0 && comp[j] == usize::MAX {
+                    comp[j] = next;
+                    stack.push(j);
+                }
+            }
+        }
+        next += 1;
+    }
+    comp
+}
+
+/// Each part grown by the nodes of other parts within `margin` (m) of one of its own: the overlap at
+/// the boundaries (shared nodes are trained by both submaps). Returns the extra nodes per part.
+pub fn overlap(parts: &[Vec<usize>], positions: &[DVec3], margin: f64) -> Vec<Vec<usize>> {
+    parts
+        .iter()
+        .map(|p| {
+            let mut extra: Vec<usize> = (0..positions.len())
+                .filter(|i| !p.contains(i))
+                .filter(|&i| {
+                    p.iter()
+                        .any(|&j| positions[i].distance(positions[j]) <= margin)
+                })
+                .collect();
+            extra.sort_unstable();
+            extra
+        })
+        .collect()
+}
+
+/// How to cut.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Method {
+    /// Nearest neighbours by camera position (SiLVR's public code).
+    Distance,
+    /// Shared tracks between keyframes (the paper; needs `silvr poses`).
+    Covis,
+}
+
+/// What `silvr submaps` is asked for.
+#[derive(Clone, Debug)]
+pub struct SubmapOptions {
+    pub method: Method,
+    pub limit: Limit,
+    /// Keyframes of neighbouring submaps within this distance (m) of one's own are trained by both.
+    pub overlap_m: f64,
+    /// Neighbours per keyframe in the distance graph (scikit-learn's default, 10; at most a sixth of
+    /// the keyframes, at least 2).
+    pub neighbours: usize,
+}
+
+/// A keyframe: the frames (indices into the file's list) taken at one instant, and where.
+#[derive(Clone, Debug, Serialize)]
+pub struct Node {
+    pub key: String,
+    pub frames: Vec<usize>,
+    /// Mean camera centre (the file's world frame).
+    pub position: [f64; 3],
+}
+
+/// One submap: its own keyframes and those it shares with neighbours.
+#[derive(Clone, Debug, Serialize)]
+pub struct Submap {
+    pub name: String,
+    pub keyframes: Vec<usize>,
+    pub overlap: Vec<usize>,
+    /// Frame indices (own and shared), in the file's order.
+    pub frames: Vec<usize>,
+}
+
+/// The cut of one dataset.
+#[derive(Clone, Debug, Serialize)]
+pub struct Plan {
+    pub method: Method,
+    pub limit: Limit,
+    pub overlap_m: f64,
+    pub nodes: Vec<Node>,
+    pub submaps: Vec<Submap>,
+    /// Weight of the graph's edges between submaps (before overlap): lower is a cleaner cut.
+    pub cut_weight: f64,
+}
+
+/// Cuts the frames of a `transforms.json` (`frames` as [`crate::dataset::parse_frames`] reads them;
+/// `path` names the file in errors).
+pub fn plan(
+    frames: &[crate::dataset::NsFrame],
+    path: &std::path::Path,
+    opts: &SubmapOptions,
+) -> Result<Plan, crate::dataset::DatasetError> {
+    let fail = |detail: String| crate::dataset::DatasetError::Format {
+        path: path.to_path_buf(),
+        detail,
+    };
+    if opts.method == Method::Covis {
+        return Err(fail(
+            "co-visibility submaps need the tracks of `silvr poses`, which this build does not have yet; use --method distance".into(),
+        ));
+    }
+    // Keyframes: frames sharing a keyframe index (our datasets), else each frame on its own.
+    let mut index: std::collections::BTreeMap<String, usize> = Default::default();
+    let mut nodes: Vec<Node> = Vec::new();
+    let mut sums: Vec<DVec3> = Vec::new();
+    for (i, f) in frames.iter().enumerate() {
+        let (_, pose) = f.camera(path)?;
+        let key = match f.keyframe {
+            Some(k) => format!("keyframe {k}"),
+            None => f.file_path.clone(),
+        };
+        let n = *index.entry(key.clone()).or_insert_with(|| {
+            nodes.push(Node {
+                key,
+                frames: Vec::new(),
+                position: [0.0; 3],
+            });
+            sums.push(DVec3::ZERO);
+            nodes.len() - 1
+        });
+        nodes[n].frames.push(i);
+        sums[n] += pose.trans;
+    }
+    if nodes.len() < 2 {
+        return Err(fail(format!("{} keyframe(s): nothing to cut", nodes.len())));
+    }
+    let positions: Vec<DVec3> = nodes
+        .iter()
+        .zip(&sums)
+        .map(|(n, s)| *s / n.frames.len() as f64)
+        .collect();
+    for (n, p) in nodes.iter_mut().zip(&positions) {
+        n.position = p.to_array();
+    }
+    // scikit-learn's 10 neighbours join nearly every pair of a short path's keyframes (a cut of such a
+    // graph is arbitrary): at most a sixth of the keyframes, at least 2.
+    let k = opts.neighbours.min(nodes.len() / 6).max(2);
+    let graph = distance_graph(&positions, k);
+    let images: Vec<usize> = nodes.iter().map(|n| n.frames.len()).collect();
+    let parts = partition(&graph, &images, opts.limit);
+    let cut_weight = graph.cut_weight(&parts);
+    let extra = overlap(&parts, &positions, opts.overlap_m);
+    let submaps = parts
+        .iter()
+        .zip(extra)
+        .enumerate()
+        .map(|(k, (own, shared))| {
+            let mut fr: Vec<usize> = own
+                .iter()
+                .chain(&shared)
+                .flat_map(|&n| nodes[n].frames.iter().copied())
+                .collect();
+            fr.sort_unstable();
+            Submap {
+                name: format!("submap_{k:02}"),
+                keyframes: own.clone(),
+                overlap: shared,
+                frames: fr,
+            }
+        })
+        .collect();
+    Ok(Plan {
+        method: opts.method,
+        limit: opts.limit,
+        overlap_m: opts.overlap_m,
+        nodes,
+        submaps,
+        cut_weight,
+    })
+}
+
+/// The `transforms.json` of one submap: the dataset's file (`root`, parsed) with only the submap's
+/// frames, every file path prefixed with `prefix` (the way from the submap's folder back to the
+/// dataset, so no image is copied), and the train/held-out lists cut to match.
+pub fn submap_transforms(
+    root: &serde_json::Value,
+    sub: &Submap,
+    prefix: &str,
+) -> serde_json::Value {
+    use serde_json::Value;
+    let mut out = root.clone();
+    let join = |p: &str| format!("{prefix}{p}");
+    let all = root["frames"].as_array().cloned().unwrap_or_default();
+    let mut names = std::collections::HashSet::new();
+    let frames: Vec<Value> = sub
+        .frames
+        .iter()
+        .filter_map(|&i| all.get(i).cloned())
+        .map(|mut f| {
+            if let Some(o) = f.as_object_mut() {
+                for k in [
+                    "file_path",
+                    "depth_file_path",
+                    "normal_file_path",
+                    "sky_mask_path",
+                ] {
+                    if let Some(p) = o.get(k).and_then(Value::as_str).map(String::from) {
+                        if k == "file_path" {
+                            names.insert(p.clone());
+                        }
+                        o.insert(k.into(), Value::from(join(&p)));
+                    }
+                }
+            }
+            f
+        })
+        .collect();
+    if let Some(o) = out.as_object_mut() {
+        o.insert("frames".into(), Value::from(frames));
+        for list in ["train_filenames", "val_filenames"] {
+            if let Some(a) = root.get(list).and_then(Value::as_array) {
+                let kept: Vec<Value> = a
+                    .iter()
+                    .filter_map(Value::as_str)
+                    .filter(|n| names.contains(*n))
+                    .map(|n| Value::from(join(n)))
+                    .collect();
+                o.insert(list.into(), Value::from(kept));
+            }
+        }
+    }
+    out
+}
+
+/// A top-down picture of the keyframes coloured by submap (shared ones ringed in their second colour).
+pub fn plot(plan: &Plan) -> image::RgbImage {
+    use crate::eval::plot::{text, PALETTE};
+    let (w, h, pad) = (720u32, 720u32, 40.0);
+    let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([255, 255, 255]));
+    let xy: Vec<(f64, f64)> = plan
+        .nodes
+        .iter()
+        .map(|n| (n.position[0], n.position[1]))
+        .collect();
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for &(x, y) in &xy {
+        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+    }
+    let span = (x1 - x0).max(y1 - y0).max(1e-6);
+    // Centred: the shorter side's slack split evenly.
+    let (ox, oy) = ((span - (x1 - x0)) / 2.0, (span - (y1 - y0)) / 2.0);
+    let to_px = |(x, y): (f64, f64)| {
+        (
+            (pad + (x - x0 + ox) / span * (w as f64 - 2.0 * pad)) as i32,
+            (h as f64 - pad - (y - y0 + oy) / span * (h as f64 - 2.0 * pad)) as i32,
+        )
+    };
+    let dot = |img: &mut image::RgbImage, (cx, cy): (i32, i32), r: i32, c: [u8; 3]| {
+        for dy in -r..=r {
+            for dx in -r..=r {
+                let (x, y) = (cx + dx, cy + dy);
+                if dx * dx + dy * dy <= r * r
+                    && x >= 0
+                    && y >= 0
+                    && (x as u32) < w
+                    && (y as u32) < h
+                {
+                    img.put_pixel(x as u32, y as u32, image::Rgb(c));
+                }
+            }
+        }
+    };
+    for (k, s) in plan.submaps.iter().enumerate() {
+        let c = PALETTE[k % PALETTE.len()];
+        for &n in &s.overlap {
+            dot(&mut img, to_px(xy[n]), 9, c);
+        }
+    }
+    for (k, s) in plan.submaps.iter().enumerate() {
+        let c = PALETTE[k % PALETTE.len()];
+        for &n in &s.keyframes {
+            dot(&mut img, to_px(xy[n]), 5, c);
+        }
+        if let Some(&n) = s.keyframes.first() {
+            let (x, y) = to_px(xy[n]);
+            text(&mut img, x + 8, y - 18, &k.to_string(), 2, c);
+        }
+    }
+    text(
+        &mut img,
+        10,
+        10,
+        &format!(
+            "{} submaps by {:?}, top view, {:.0} m across",
+            plan.submaps.len(),
+            plan.method,
+            span
+        ),
+        2,
+        [0, 0, 0],
+    );
+    img
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A path along x with `n` keyframes `step` apart.
+    fn line(n: usize, step: f64) -> Vec<DVec3> {
+        (0..n)
+            .map(|i| DVec3::new(i as f64 * step, 0.0, 0.0))
+            .collect()
+    }
+
+    #[test]
+    fn a_path_is_cut_into_contiguous_pieces_of_the_asked_size() {
+        let pos = line(40, 1.0);
+        let g = distance_graph(&pos, 4);
+        let images = vec![3; 40];
+        let parts = partition(&g, &images, Limit::MaxImages(30));
+        assert!(parts.iter().all(|p| p.len() * 3 <= 30), "{parts:?}");
+        assert!(parts.len() >= 4 && parts.len() <= 8, "{parts:?}");
+        for p in &parts {
+            // Contiguous along the path.
+            assert_eq!(p.last().unwrap() - p[0] + 1, p.len(), "{p:?}");
+        }
+        let all: usize = parts.iter().map(Vec::len).sum();
+        assert_eq!(all, 40);
+        let by_count = partition(&g, &images, Limit::Count(3));
+        assert_eq!(by_count.len(), 3);
+        assert!(by_count.iter().all(|p| p.len() >= 8), "{by_count:?}");
+    }
+
+    #[test]
+    fn two_clusters_split_where_the_gap_is_and_overlap_crosses_it() {
+        // Two streets 20 m apart, joined by one pair of neighbours 3 m apart.
+        let mut pos = line(15, 1.0);
+        pos.extend((0..15).map(|i| DVec3::new(17.0 + i as f64, 0.0, 0.0)));
+        let mut g = distance_graph(&pos, 3);
+        let weak = g.cut_weight(&[(0..15).collect(), (15..30).collect()]);
+        assert!(weak <= 4.0, "{weak}");
+        let parts = partition(&g, &[1; 30], Limit::Count(2));
+        assert_eq!(parts, vec![(0..15).collect::<Vec<_>>(), (15..30).collect()]);
+        let extra = overlap(&parts, &pos, 3.5);
+        assert_eq!(extra, vec![vec![15], vec![14]]);
+        // A disconnected graph splits along its components.
+        g = Graph::new(4);
+        g.add(0, 1, 1.0);
+        g.add(2, 3, 1.0);
+        assert_eq!(
+            partition(&g, &[1; 4], Limit::Count(2)),
+            vec![vec![0, 1], vec![2, 3]]
+        );
+    }
+}
