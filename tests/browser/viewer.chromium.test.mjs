@@ -39,7 +39,9 @@ const driver = {
   goto: (page, url) => page.goto(url, { waitUntil: 'load' }),
   waitFor: (page, fn, arg, timeout) => page.waitForFunction(fn, arg, { timeout }),
   evaluate: (page, fn, arg) => page.evaluate(fn, arg),
+  // A folder path fills a `webkitdirectory` input with the folder's files and their relative paths.
   upload: (page, selector, path) => page.setInputFiles(selector, path),
+  folderUpload: true,
   screenshot: (page, selector) => page.locator(selector).screenshot(),
   drag: async (page, x0, y0, x1, y1) => {
     await page.mouse.move(x0, y0);
