@@ -89,8 +89,8 @@ enum Command {
         keep_unknown: bool,
     },
     /// Split a dataset into submaps by recursive normalised cuts of its keyframe graph (distance: camera
-    /// positions' nearest neighbours, as SiLVR's public code; covis: shared tracks, once `silvr poses`
-    /// exists). Each submap is a folder with a transforms.json pointing back at the dataset's images (no
+    /// positions' nearest neighbours, as SiLVR's public code; covis: the structure two keyframes both
+    /// see, from the lidar depth until `silvr poses` gives tracks). Each submap is a folder with a transforms.json pointing back at the dataset's images (no
     /// copies) that `silvr train` accepts, plus manifest.json and a top-down plot.
     Submaps {
         /// Dataset folder (or its transforms.json).
@@ -110,6 +110,25 @@ enum Command {
         /// Keyframes within this many metres of a neighbouring submap's are trained by both.
         #[arg(long, default_value_t = 2.0)]
         overlap: f64,
+    },
+    /// Candidate image pairs to match, from the poses of a transforms.json (a SLAM prior: centres near,
+    /// optical axes within an angle, view frusta overlapping): one `image1 image2` line per pair, the
+    /// match list `colmap matches_importer --match_type pairs` reads.
+    Pairs {
+        /// Dataset folder (its transforms.json) or a transforms.json (transforms_prior.json, say).
+        dataset: PathBuf,
+        /// The pair list to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Largest distance between camera centres (m).
+        #[arg(long, default_value_t = 20.0)]
+        max_distance: f64,
+        /// Largest angle between optical axes (degrees).
+        #[arg(long, default_value_t = 100.0)]
+        max_angle: f64,
+        /// Smallest frustum overlap (fraction of samples seen by the other image, both ways).
+        #[arg(long, default_value_t = 0.1)]
+        min_overlap: f64,
     },
     /// Pose accuracy of a trajectory against the exact one: ATE (camera centres) and rotation error after a
     /// robust Sim(3) alignment, and RPE of consecutive frames; both given as transforms.json files (a
@@ -362,6 +381,22 @@ fn main() {
         Command::Import(c) => ingest::import(c, open_gpu),
         Command::Export(c) => ingest::export(c),
         Command::EvalPoses { est, gt, out } => eval_poses(&est, &gt, out.as_deref()),
+        Command::Pairs {
+            dataset,
+            out,
+            max_distance,
+            max_angle,
+            min_overlap,
+        } => pairs(
+            &dataset,
+            &out,
+            silvr_core::sfm::pairs::PairOptions {
+                max_distance_m: max_distance,
+                max_angle_deg: max_angle,
+                min_overlap,
+                ..Default::default()
+            },
+        ),
         Command::Submaps {
             dataset,
             out,
@@ -533,7 +568,15 @@ fn submaps(
         overlap_m: overlap,
         neighbours: 10,
     };
-    let plan = submap::plan(&frames, &json, &opts)?;
+    // Lidar co-visibility: what --method covis cuts by, and what scores either cut.
+    let has_lidar = frames.iter().any(|f| f.depth_file_path.is_some());
+    let voxels = if has_lidar {
+        let src = silvr_core::source::Dir(root_dir.clone());
+        Some(submap::lidar_voxels(&src, &frames, &json)?)
+    } else {
+        None
+    };
+    let plan = submap::plan(&frames, &json, voxels.as_deref(), &opts)?;
     if out.exists() {
         anyhow::bail!("{} exists; choose a new folder", out.display());
     }
@@ -583,8 +626,14 @@ fn submaps(
             s.frames.len()
         );
     }
+    let covis = plan.covis_cut.map_or(String::new(), |c| {
+        format!(
+            "; {:.1} % of the co-visible structure spans a boundary",
+            100.0 * c.shared_voxels / c.total_voxels.max(1.0)
+        )
+    });
     eprintln!(
-        "{} submaps of {} keyframes by {:?} (cut weight {:.1}) in {}; train one with: silvr train {}",
+        "{} submaps of {} keyframes by {:?} (cut weight {:.1}{covis}) in {}; train one with: silvr train {}",
         plan.submaps.len(),
         plan.nodes.len(),
         plan.method,
@@ -608,6 +657,49 @@ fn relative_path(target: &Path, base: &Path) -> PathBuf {
         rel.push(c.as_os_str());
     }
     rel
+}
+
+/// `silvr pairs`: candidate pairs from a transforms.json's poses, as a COLMAP match list.
+fn pairs(dataset: &Path, out: &Path, opts: silvr_core::sfm::pairs::PairOptions) -> Result<()> {
+    for (what, v) in [
+        ("--max-distance", opts.max_distance_m),
+        ("--max-angle", opts.max_angle_deg),
+        ("--min-overlap", opts.min_overlap),
+    ] {
+        if !(v.is_finite() && v >= 0.0) {
+            anyhow::bail!("{what} {v}: expected a finite number ≥ 0");
+        }
+    }
+    let json = if dataset.is_dir() {
+        dataset.join("transforms.json")
+    } else {
+        dataset.to_path_buf()
+    };
+    let (frames, _, _) = silvr_core::dataset::read_frames(&json)?;
+    let cams = frames
+        .iter()
+        .map(|f| f.camera(&json))
+        .collect::<Result<Vec<_>, _>>()?;
+    let t = Instant::now();
+    let found = silvr_core::sfm::pairs::candidate_pairs(&cams, &opts);
+    let mut text = String::new();
+    for p in &found {
+        text.push_str(&format!(
+            "{} {}\n",
+            frames[p.i].file_path, frames[p.j].file_path
+        ));
+    }
+    write_atomic(out, text.as_bytes())?;
+    let n = frames.len();
+    eprintln!(
+        "{} candidate pairs of {} possible ({:.1} %) among {n} images in {:.2} s; wrote {}",
+        found.len(),
+        n * n.saturating_sub(1) / 2,
+        100.0 * found.len() as f64 / (n * n.saturating_sub(1) / 2).max(1) as f64,
+        t.elapsed().as_secs_f64(),
+        out.display()
+    );
+    Ok(())
 }
 
 /// `silvr eval-poses`: ATE / rotation / RPE of one transforms.json against another.

@@ -27,6 +27,7 @@ pub mod pointcloud;
 pub mod render;
 pub mod rig;
 pub mod sampler;
+pub mod sfm;
 pub mod shaders;
 pub mod source;
 pub mod submap;

@@ -56,6 +56,15 @@ impl Graph {
         }
     }
 
+    /// Total weight of all edges (each once).
+    pub fn total_weight(&self) -> f64 {
+        self.adj
+            .iter()
+            .enumerate()
+            .flat_map(|(i, e)| e.iter().filter(move |x| x.0 > i).map(|x| x.1))
+            .sum()
+    }
+
     /// Total weight of the edges between different parts (each edge once).
     pub fn cut_weight(&self, parts: &[Vec<usize>]) -> f64 {
         let mut label = vec![usize::MAX; self.len()];
@@ -261,8 +270,77 @@ pub fn overlap(parts: &[Vec<usize>], positions: &[DVec3], margin: f64) -> Vec<Ve
 pub enum Method {
     /// Nearest neighbours by camera position (SiLVR's public code).
     Distance,
-    /// Shared tracks between keyframes (the paper; needs `silvr poses`).
+    /// Co-visibility: the structure two keyframes both see. The paper counts shared SfM tracks; until
+    /// `silvr poses` writes tracks, the structure is the lidar's: voxels (`COVIS_VOXEL_M`) hit by the
+    /// lidar depth of both keyframes' images.
     Covis,
+}
+
+/// Voxel size of the lidar co-visibility (m): coarse enough that two views of one wall share voxels
+/// despite lidar sampling, fine enough that the two sides of a street do not.
+pub const COVIS_VOXEL_M: f64 = 0.5;
+
+/// Every `COVIS_STRIDE`-th lidar pixel in each direction is enough to know which voxels an image sees.
+const COVIS_STRIDE: u32 = 2;
+
+/// The co-visibility graph: weight = voxels both nodes' sets hold.
+pub fn covis_graph(voxels: &[std::collections::HashSet<[i32; 3]>]) -> Graph {
+    let mut g = Graph::new(voxels.len());
+    for i in 0..voxels.len() {
+        for j in i + 1..voxels.len() {
+            let (a, b) = if voxels[i].len() <= voxels[j].len() {
+                (&voxels[i], &voxels[j])
+            } else {
+                (&voxels[j], &voxels[i])
+            };
+            let shared = a.iter().filter(|v| b.contains(*v)).count();
+            g.add(i, j, shared as f64);
+        }
+    }
+    g
+}
+
+/// The voxels (world frame, `COVIS_VOXEL_M`) each frame's lidar depth image hits; empty for a frame
+/// without one. Depth is our encoding (Euclidean range × 256, DATASET.md).
+pub fn lidar_voxels(
+    src: &dyn crate::source::Source,
+    frames: &[crate::dataset::NsFrame],
+    path: &std::path::Path,
+) -> Result<Vec<std::collections::HashSet<[i32; 3]>>, crate::dataset::DatasetError> {
+    use rayon::prelude::*;
+    frames
+        .par_iter()
+        .map(|f| {
+            let mut set = std::collections::HashSet::new();
+            let Some(rel) = &f.depth_file_path else {
+                return Ok(set);
+            };
+            let (model, pose) = f.camera(path)?;
+            let p = src.path(rel);
+            let (w, h, depth) = crate::dataset::decode_png16(&src.read(rel)?, &p)?;
+            if (w, h) != (model.width, model.height) {
+                return Err(crate::dataset::DatasetError::Format {
+                    path: p,
+                    detail: format!("is {w}x{h}, its camera is {}x{}", model.width, model.height),
+                });
+            }
+            for y in (0..h).step_by(COVIS_STRIDE as usize) {
+                for x in (0..w).step_by(COVIS_STRIDE as usize) {
+                    let Some(r) = crate::lidar::images::decode_depth(depth[(y * w + x) as usize])
+                    else {
+                        continue;
+                    };
+                    let Some(d) = model.unproject(glam::DVec2::new(x as f64, y as f64)) else {
+                        continue;
+                    };
+                    let world = pose.transform_point(d.normalize() * r as f64);
+                    let v = (world / COVIS_VOXEL_M).floor();
+                    set.insert([v.x as i32, v.y as i32, v.z as i32]);
+                }
+            }
+            Ok(set)
+        })
+        .collect()
 }
 
 /// What `silvr submaps` is asked for.
@@ -306,24 +384,32 @@ pub struct Plan {
     pub submaps: Vec<Submap>,
     /// Weight of the graph's edges between submaps (before overlap): lower is a cleaner cut.
     pub cut_weight: f64,
+    /// The cut scored by lidar co-visibility whatever the method (when the dataset has lidar depth):
+    /// the structure seen from both sides of a boundary, which is what a boundary costs the fields.
+    pub covis_cut: Option<CovisCut>,
+}
+
+/// Co-visibility across the cut: voxel pairs (keyframe pair × shared voxel) split between submaps, and
+/// over all keyframe pairs.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct CovisCut {
+    pub shared_voxels: f64,
+    pub total_voxels: f64,
 }
 
 /// Cuts the frames of a `transforms.json` (`frames` as [`crate::dataset::parse_frames`] reads them;
-/// `path` names the file in errors).
+/// `path` names the file in errors). `voxels`: each frame's lidar voxels ([`lidar_voxels`]), needed
+/// for [`Method::Covis`] and, when given, used to score either cut by co-visibility too.
 pub fn plan(
     frames: &[crate::dataset::NsFrame],
     path: &std::path::Path,
+    voxels: Option<&[std::collections::HashSet<[i32; 3]>]>,
     opts: &SubmapOptions,
 ) -> Result<Plan, crate::dataset::DatasetError> {
     let fail = |detail: String| crate::dataset::DatasetError::Format {
         path: path.to_path_buf(),
         detail,
     };
-    if opts.method == Method::Covis {
-        return Err(fail(
-            "co-visibility submaps need the tracks of `silvr poses`, which this build does not have yet; use --method distance".into(),
-        ));
-    }
     // Keyframes: frames sharing a keyframe index (our datasets), else each frame on its own.
     let mut index: std::collections::BTreeMap<String, usize> = Default::default();
     let mut nodes: Vec<Node> = Vec::new();
@@ -360,10 +446,36 @@ pub fn plan(
     // scikit-learn's 10 neighbours join nearly every pair of a short path's keyframes (a cut of such a
     // graph is arbitrary): at most a sixth of the keyframes, at least 2.
     let k = opts.neighbours.min(nodes.len() / 6).max(2);
-    let graph = distance_graph(&positions, k);
+    let distance = distance_graph(&positions, k);
+    // Co-visibility per keyframe: the union of its images' voxels.
+    let covis = match voxels {
+        Some(v) if v.iter().any(|s| !s.is_empty()) => {
+            let per_node: Vec<std::collections::HashSet<[i32; 3]>> = nodes
+                .iter()
+                .map(|n| {
+                    n.frames
+                        .iter()
+                        .flat_map(|&i| v[i].iter().copied())
+                        .collect()
+                })
+                .collect();
+            Some(covis_graph(&per_node))
+        }
+        _ => None,
+    };
+    let graph = match opts.method {
+        Method::Distance => &distance,
+        Method::Covis => covis.as_ref().ok_or_else(|| {
+            fail("co-visibility needs lidar depth images (depth_file_path) to see which structure each keyframe sees, and this dataset has none (SfM tracks from `silvr poses` are not built yet); use --method distance".into())
+        })?,
+    };
     let images: Vec<usize> = nodes.iter().map(|n| n.frames.len()).collect();
-    let parts = partition(&graph, &images, opts.limit);
+    let parts = partition(graph, &images, opts.limit);
     let cut_weight = graph.cut_weight(&parts);
+    let covis_cut = covis.as_ref().map(|g| CovisCut {
+        shared_voxels: g.cut_weight(&parts),
+        total_voxels: g.total_weight(),
+    });
     let extra = overlap(&parts, &positions, opts.overlap_m);
     let submaps = parts
         .iter()
@@ -391,6 +503,7 @@ pub fn plan(
         nodes,
         submaps,
         cut_weight,
+        covis_cut,
     })
 }
 
@@ -545,6 +658,25 @@ mod tests {
         let by_count = partition(&g, &images, Limit::Count(3));
         assert_eq!(by_count.len(), 3);
         assert!(by_count.iter().all(|p| p.len() >= 8), "{by_count:?}");
+    }
+
+    #[test]
+    fn covisibility_counts_shared_voxels_and_cuts_where_little_is_shared() {
+        use std::collections::HashSet;
+        // Six keyframes: 0-2 see voxels 0..10, 3-5 see 8..20 (two shared), one voxel per keyframe of its own.
+        let sets: Vec<HashSet<[i32; 3]>> = (0..6)
+            .map(|k| {
+                let range = if k < 3 { 0..10 } else { 8..20 };
+                range.map(|x| [x, 0, 0]).chain([[100 + k, 0, 0]]).collect()
+            })
+            .collect();
+        let g = covis_graph(&sets);
+        assert_eq!(g.adj[0].iter().find(|e| e.0 == 1).unwrap().1, 10.0);
+        assert_eq!(g.adj[0].iter().find(|e| e.0 == 3).unwrap().1, 2.0);
+        let parts = partition(&g, &[1; 6], Limit::Count(2));
+        assert_eq!(parts, vec![vec![0, 1, 2], vec![3, 4, 5]]);
+        assert_eq!(g.cut_weight(&parts), 18.0);
+        assert_eq!(g.total_weight(), 3.0 * 10.0 + 3.0 * 12.0 + 18.0);
     }
 
     #[test]

@@ -61,6 +61,45 @@ fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
     ]);
     assert!(json(&same)["ate_rmse_m"].as_f64().unwrap() < 1e-9);
 
+    // Candidate pairs from the prior: every camera's consecutive frames, fewer than all pairs, and
+    // never the left and right cameras of one instant (they look apart).
+    let pairs = tmp.path().join("pairs.txt");
+    let said = ok(&[
+        "pairs",
+        data.join("transforms_prior.json").to_str().unwrap(),
+        "--out",
+        pairs.to_str().unwrap(),
+    ]);
+    assert!(said.contains("candidate pairs of 630 possible"), "{said}");
+    let text = std::fs::read_to_string(&pairs).unwrap();
+    let lines: Vec<(&str, &str)> = text.lines().map(|l| l.split_once(' ').unwrap()).collect();
+    assert!(
+        lines.len() > 36 && lines.len() < 630,
+        "{} pairs",
+        lines.len()
+    );
+    for cam in ["cam_front", "cam_left", "cam_right"] {
+        for k in 0..11 {
+            let (a, b) = (
+                format!("images/{cam}/{k:05}.png"),
+                format!("images/{cam}/{:05}.png", k + 1),
+            );
+            assert!(lines.contains(&(a.as_str(), b.as_str())), "{a} {b} missing");
+        }
+    }
+    for k in 0..12 {
+        let (l, r) = (
+            format!("images/cam_left/{k:05}.png"),
+            format!("images/cam_right/{k:05}.png"),
+        );
+        assert!(
+            !lines
+                .iter()
+                .any(|&(a, b)| (a == l && b == r) || (a == r && b == l)),
+            "{l} with {r}"
+        );
+    }
+
     // Two submaps by distance with a metre of overlap.
     let subs = tmp.path().join("out").join("subs");
     let said = ok(&[
@@ -139,18 +178,47 @@ fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
         tmp.path().join("trained").to_str().unwrap(),
     ]);
 
-    // Refusals name the problem: an existing output, co-visibility before `silvr poses` exists.
+    // Co-visibility (from the lidar depth): the same street cut where less structure is shared, and
+    // both cuts scored by it.
+    let by_covis = tmp.path().join("covis");
+    ok(&[
+        "submaps",
+        d,
+        "--out",
+        by_covis.to_str().unwrap(),
+        "--method",
+        "covis",
+        "--count",
+        "2",
+    ]);
+    let mc = json(&by_covis.join("manifest.json"));
+    assert_eq!(mc["method"], "covis");
+    let frac = |m: &serde_json::Value| {
+        let c = &m["covis_cut"];
+        c["shared_voxels"].as_f64().unwrap() / c["total_voxels"].as_f64().unwrap()
+    };
+    let (fc, fd) = (frac(&mc), frac(&manifest));
+    println!("co-visible structure across the cut: covis {fc:.3}, distance {fd:.3}");
+    assert!(fc > 0.0 && fc <= fd + 1e-9, "covis {fc} vs distance {fd}");
+
+    // Refusals name the problem: an existing output, co-visibility without lidar depth.
     let again = silvr(&["submaps", d, "--out", subs.to_str().unwrap()]);
     assert!(!again.status.success());
     assert!(String::from_utf8_lossy(&again.stderr).contains("exists"));
+    let mut tf = json(&data.join("transforms.json"));
+    for f in tf["frames"].as_array_mut().unwrap() {
+        f.as_object_mut().unwrap().remove("depth_file_path");
+    }
+    let camera_only = data.join("camera_only.json");
+    std::fs::write(&camera_only, serde_json::to_vec(&tf).unwrap()).unwrap();
     let covis = silvr(&[
         "submaps",
-        d,
+        camera_only.to_str().unwrap(),
         "--out",
         tmp.path().join("c").to_str().unwrap(),
         "--method",
         "covis",
     ]);
     assert!(!covis.status.success());
-    assert!(String::from_utf8_lossy(&covis.stderr).contains("silvr poses"));
+    assert!(String::from_utf8_lossy(&covis.stderr).contains("lidar depth"));
 }
