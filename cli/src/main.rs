@@ -14,7 +14,9 @@ use silvr_core::train::export::ExportDepth;
 
 mod backend;
 mod ingest;
+mod reconstruct;
 mod serve;
+mod submaps;
 mod train;
 mod uncertainty;
 
@@ -289,6 +291,10 @@ enum Command {
     /// Serve the built studio and a folder of reconstructions over HTTP, and print the link that opens
     /// the folder's PLY files in the studio.
     Serve(serve::ServeCmd),
+    /// The whole map: submaps (covis or distance), then per submap train → uncertainty → filtered export,
+    /// the merge (the more certain submap keeps each overlap voxel) and, with ground truth, its evaluation
+    /// filtered and unfiltered. Rerun on the same --out to finish a killed job (finished submaps are kept).
+    Reconstruct(reconstruct::ReconstructCmd),
     /// Pack what training reads from a dataset (transforms.json, images, lidar depth, normals, sky masks,
     /// calib, manifest) into one tar archive a user can drop into the studio, or inspect with `tar tf`.
     Pack {
@@ -404,7 +410,7 @@ fn main() {
             max_images,
             count,
             overlap,
-        } => submaps(&dataset, &out, &method, max_images, count, overlap),
+        } => submaps::run(&dataset, &out, &method, max_images, count, overlap).map(|_| ()),
         Command::Eval {
             reconstruction,
             gt,
@@ -516,6 +522,7 @@ fn main() {
         Command::BenchSampler(a) => train::bench_sampler(&a),
         Command::Bench { points, reps, json } => bench(points, reps, json),
         Command::Serve(c) => serve::run(c),
+        Command::Reconstruct(c) => reconstruct::run(&c),
         Command::Pack {
             dataset,
             out,
@@ -526,137 +533,6 @@ fn main() {
         eprintln!("error: {e:#}");
         std::process::exit(1);
     }
-}
-
-/// `silvr submaps`: the plan (silvr_core::submap), then one folder per submap, written under a
-/// temporary name and renamed into place as a whole.
-fn submaps(
-    dataset: &Path,
-    out: &Path,
-    method: &str,
-    max_images: Option<usize>,
-    count: Option<usize>,
-    overlap: f64,
-) -> Result<()> {
-    use silvr_core::submap::{self, Limit, Method, SubmapOptions};
-    let method = match method {
-        "distance" => Method::Distance,
-        "covis" => Method::Covis,
-        other => anyhow::bail!("--method {other}: expected distance or covis"),
-    };
-    let limit = match (count, max_images) {
-        (Some(0), _) | (_, Some(0)) => anyhow::bail!("--count and --max-images must be at least 1"),
-        (Some(c), _) => Limit::Count(c),
-        (None, m) => Limit::MaxImages(m.unwrap_or(300)),
-    };
-    if !(overlap.is_finite() && overlap >= 0.0) {
-        anyhow::bail!("--overlap {overlap}: expected a distance in metres ≥ 0");
-    }
-    let json = if dataset.is_dir() {
-        dataset.join("transforms.json")
-    } else {
-        dataset.to_path_buf()
-    };
-    let root_dir = json.parent().unwrap_or(Path::new(".")).to_path_buf();
-    let text =
-        std::fs::read_to_string(&json).with_context(|| format!("reading {}", json.display()))?;
-    let (frames, _, _) = silvr_core::dataset::parse_frames(&text, &json)?;
-    let value: serde_json::Value = serde_json::from_str(&text)?;
-    let opts = SubmapOptions {
-        method,
-        limit,
-        overlap_m: overlap,
-        neighbours: 10,
-    };
-    // Lidar co-visibility: what --method covis cuts by, and what scores either cut.
-    let has_lidar = frames.iter().any(|f| f.depth_file_path.is_some());
-    let voxels = if has_lidar {
-        let src = silvr_core::source::Dir(root_dir.clone());
-        Some(submap::lidar_voxels(&src, &frames, &json)?)
-    } else {
-        None
-    };
-    let plan = submap::plan(&frames, &json, voxels.as_deref(), &opts)?;
-    if out.exists() {
-        anyhow::bail!("{} exists; choose a new folder", out.display());
-    }
-    let parent = out
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
-    let tmp = parent.join(format!(
-        ".{}.partial",
-        out.file_name()
-            .map(|n| n.to_string_lossy())
-            .unwrap_or_default()
-    ));
-    let _ = std::fs::remove_dir_all(&tmp);
-    // The way from a submap's folder (out/submap_k/) back to the dataset.
-    let prefix = {
-        let abs = |p: &Path| -> Result<PathBuf> {
-            std::path::absolute(p).with_context(|| format!("resolving {}", p.display()))
-        };
-        let rel = relative_path(&abs(&root_dir)?, &abs(out)?.join("submap_00"));
-        let s = rel.to_string_lossy().replace('\\', "/");
-        if s.is_empty() {
-            String::new()
-        } else {
-            format!("{s}/")
-        }
-    };
-    for sub in &plan.submaps {
-        let dir = tmp.join(&sub.name);
-        std::fs::create_dir_all(&dir)?;
-        let tf = submap::submap_transforms(&value, sub, &prefix);
-        std::fs::write(dir.join("transforms.json"), serde_json::to_vec_pretty(&tf)?)?;
-    }
-    std::fs::write(tmp.join("manifest.json"), serde_json::to_vec_pretty(&plan)?)?;
-    std::fs::write(
-        tmp.join("submaps.png"),
-        silvr_core::eval::plot::png_bytes(&submap::plot(&plan)),
-    )?;
-    std::fs::rename(&tmp, out).with_context(|| format!("moving {} into place", out.display()))?;
-    for s in &plan.submaps {
-        eprintln!(
-            "{}: {} keyframes + {} shared, {} images",
-            s.name,
-            s.keyframes.len(),
-            s.overlap.len(),
-            s.frames.len()
-        );
-    }
-    let covis = plan.covis_cut.map_or(String::new(), |c| {
-        format!(
-            "; {:.1} % of the co-visible structure spans a boundary",
-            100.0 * c.shared_voxels / c.total_voxels.max(1.0)
-        )
-    });
-    eprintln!(
-        "{} submaps of {} keyframes by {:?} (cut weight {:.1}{covis}) in {}; train one with: silvr train {}",
-        plan.submaps.len(),
-        plan.nodes.len(),
-        plan.method,
-        plan.cut_weight,
-        out.display(),
-        out.join("submap_00").display()
-    );
-    Ok(())
-}
-
-/// `target` relative to the folder `base` (both absolute): `../../dataset` and the like.
-fn relative_path(target: &Path, base: &Path) -> PathBuf {
-    let t: Vec<_> = target.components().collect();
-    let b: Vec<_> = base.components().collect();
-    let common = t.iter().zip(&b).take_while(|(x, y)| x == y).count();
-    let mut rel = PathBuf::new();
-    for _ in common..b.len() {
-        rel.push("..");
-    }
-    for c in &t[common..] {
-        rel.push(c.as_os_str());
-    }
-    rel
 }
 
 /// `silvr pairs`: candidate pairs from a transforms.json's poses, as a COLMAP match list.
@@ -957,7 +833,7 @@ fn write_error_cloud(ev: &eval::GeometryEvaluation, path: &Path) -> Result<()> {
         .with_context(|| format!("writing {}", path.display()))
 }
 
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     silvr_core::dataset::write_atomic(path, bytes).map_err(Into::into)
 }
 
@@ -1234,7 +1110,7 @@ fn report_json(r: &GeometryReport) -> serde_json::Value {
     v
 }
 
-fn print_table(rows: &[(&str, &GeometryReport)]) {
+pub(crate) fn print_table(rows: &[(&str, &GeometryReport)]) {
     println!(
         "{:<12} {:>10} {:>10} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
         "method", "acc [m]", "comp [m]", "P@5cm", "R@5cm", "F@5cm", "P@10cm", "R@10cm", "F@10cm"

@@ -630,6 +630,95 @@ pub fn plot(plan: &Plan) -> image::RgbImage {
     img
 }
 
+/// Voxel of the merge rule (m): where two submaps' points share one, the more certain submap keeps it.
+pub const MERGE_VOXEL_M: f64 = 0.2;
+
+/// Merges submaps' point clouds (each already filtered by its own uncertainty): within every
+/// `voxel`-sized cell that more than one submap put points in, only the points of the submap whose
+/// median `log_std_combined` there is lowest are kept (the more certain field wins the overlap; a cloud
+/// without that field counts as least certain); cells of one submap keep all of theirs. The result
+/// carries a `submap` scalar (the id given with each cloud) and the scalars and colours every input has.
+pub fn merge(
+    clouds: &[(u32, crate::pointcloud::PointCloud)],
+    voxel: f64,
+) -> crate::pointcloud::PointCloud {
+    use std::collections::HashMap;
+    let key = |p: DVec3| {
+        let v = (p / voxel).floor();
+        [v.x as i64, v.y as i64, v.z as i64]
+    };
+    // Per cell and submap: the log-stds of its points there.
+    let mut cells: HashMap<[i64; 3], Vec<(usize, Vec<f32>)>> = HashMap::new();
+    for (c, (_, cloud)) in clouds.iter().enumerate() {
+        let ls = cloud.scalar("log_std_combined");
+        for (i, &p) in cloud.positions.iter().enumerate() {
+            let v = ls.map_or(f32::INFINITY, |s| s[i]);
+            let v = if v.is_nan() { f32::INFINITY } else { v };
+            let e = cells.entry(key(p)).or_default();
+            match e.iter_mut().find(|x| x.0 == c) {
+                Some(x) => x.1.push(v),
+                None => e.push((c, vec![v])),
+            }
+        }
+    }
+    let winner: HashMap<[i64; 3], usize> = cells
+        .into_iter()
+        .map(|(k, mut by)| {
+            let med = |v: &mut Vec<f32>| {
+                v.sort_by(f32::total_cmp);
+                v[v.len() / 2]
+            };
+            let best = by
+                .iter_mut()
+                .map(|(c, v)| (med(v), *c))
+                .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
+                .map_or(0, |x| x.1);
+            (k, best)
+        })
+        .collect();
+    // Scalars and colours every cloud has.
+    let names: Vec<String> = clouds
+        .first()
+        .map(|(_, c)| {
+            c.scalars
+                .iter()
+                .map(|(n, _)| n.clone())
+                .collect::<Vec<String>>()
+        })
+        .unwrap_or_default()
+        .into_iter()
+        .filter(|n| n != "submap" && clouds.iter().all(|(_, c)| c.scalar(n).is_some()))
+        .collect();
+    let colours = clouds.iter().all(|(_, c)| c.colors.is_some());
+    let mut out = crate::pointcloud::PointCloud::new();
+    let mut scalars: Vec<Vec<f32>> = vec![Vec::new(); names.len()];
+    let mut ids = Vec::new();
+    let mut rgb = Vec::new();
+    for (c, (id, cloud)) in clouds.iter().enumerate() {
+        for (i, &p) in cloud.positions.iter().enumerate() {
+            if winner.get(&key(p)) != Some(&c) {
+                continue;
+            }
+            out.positions.push(p);
+            ids.push(*id as f32);
+            for (k, n) in names.iter().enumerate() {
+                scalars[k].push(cloud.scalar(n).map_or(f32::NAN, |s| s[i]));
+            }
+            if colours {
+                rgb.push(cloud.colors.as_ref().map_or([0; 3], |x| x[i]));
+            }
+        }
+    }
+    if colours {
+        out.colors = Some(rgb);
+    }
+    for (n, v) in names.into_iter().zip(scalars) {
+        out.set_scalar(&n, v);
+    }
+    out.set_scalar("submap", ids);
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -677,6 +766,25 @@ mod tests {
         assert_eq!(parts, vec![vec![0, 1, 2], vec![3, 4, 5]]);
         assert_eq!(g.cut_weight(&parts), 18.0);
         assert_eq!(g.total_weight(), 3.0 * 10.0 + 3.0 * 12.0 + 18.0);
+    }
+
+    #[test]
+    fn merge_keeps_the_more_certain_submap_where_both_have_points() {
+        use crate::pointcloud::PointCloud;
+        let cloud = |xs: &[f64], log_std: f32| {
+            let mut c =
+                PointCloud::from_positions(xs.iter().map(|&x| DVec3::new(x, 0.05, 0.05)).collect());
+            c.set_scalar("log_std_combined", vec![log_std; xs.len()]);
+            c
+        };
+        // Submap 3 alone at x < 1; both at 1.0–1.2 (submap 7 more certain); submap 7 alone beyond.
+        let a = cloud(&[0.05, 0.5, 1.05, 1.15], 2.0);
+        let b = cloud(&[1.1, 1.12, 1.5], 1.0);
+        let m = merge(&[(3, a), (7, b)], 0.2);
+        let xs: Vec<f64> = m.positions.iter().map(|p| p.x).collect();
+        assert_eq!(xs, vec![0.05, 0.5, 1.1, 1.12, 1.5]);
+        assert_eq!(m.scalar("submap").unwrap(), &[3.0, 3.0, 7.0, 7.0, 7.0]);
+        assert_eq!(m.scalar("log_std_combined").unwrap()[0], 2.0);
     }
 
     #[test]

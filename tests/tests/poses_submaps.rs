@@ -21,12 +21,32 @@ fn json(p: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
 }
 
+/// The micro world (seed 2), generated once per test process.
+fn world() -> &'static Path {
+    static DIR: std::sync::OnceLock<(tempfile::TempDir, std::path::PathBuf)> =
+        std::sync::OnceLock::new();
+    &DIR.get_or_init(|| {
+        let tmp = tempfile::tempdir().unwrap();
+        let data = tmp.path().join("micro");
+        ok(&[
+            "synth",
+            "--preset",
+            "micro",
+            "--seed",
+            "2",
+            "--out",
+            data.to_str().unwrap(),
+        ]);
+        (tmp, data)
+    })
+    .1
+}
+
 #[test]
 fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("micro");
+    let data = world().to_path_buf();
     let d = data.to_str().unwrap();
-    ok(&["synth", "--preset", "micro", "--seed", "2", "--out", d]);
 
     // The prior: present, and wrong by the documented amounts (12 keyframes over ~8 m: drift of a few
     // centimetres, 2 cm / 0.2° noise), while the exact poses score zero against themselves.
@@ -209,6 +229,7 @@ fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
     for f in tf["frames"].as_array_mut().unwrap() {
         f.as_object_mut().unwrap().remove("depth_file_path");
     }
+    // Beside the dataset's own file, so its relative paths resolve.
     let camera_only = data.join("camera_only.json");
     std::fs::write(&camera_only, serde_json::to_vec(&tf).unwrap()).unwrap();
     let covis = silvr(&[
@@ -221,4 +242,78 @@ fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
     ]);
     assert!(!covis.status.success());
     assert!(String::from_utf8_lossy(&covis.stderr).contains("lidar depth"));
+}
+
+/// `silvr reconstruct` on the local scheduler: two covis submaps trained on WGSL with their uncertainty,
+/// merged with a submap id per point and scored against ground truth; a rerun keeps finished submaps and
+/// redoes one whose run did not finish.
+#[test]
+fn reconstruct_trains_each_submap_merges_and_resumes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = world().to_str().unwrap();
+    let out = tmp.path().join("rec");
+    let o = out.to_str().unwrap();
+    let args = [
+        "reconstruct",
+        d,
+        "--out",
+        o,
+        "--count",
+        "2",
+        "--model",
+        "tiny",
+        "--steps",
+        "200",
+        "--rays",
+        "256",
+        "--backend",
+        "wgpu",
+        "--export-rays",
+        "8192",
+        "--uncertainty-batches",
+        "2",
+    ];
+    let said = ok(&args);
+    assert!(said.contains("submap_01 (2/2): training"), "{said}");
+    let report = json(&out.join("report.json"));
+    assert_eq!(report["per_submap"].as_array().unwrap().len(), 2);
+    assert_eq!(report["submaps"]["method"], "covis");
+    let merged = silvr_core::pointcloud::read_ply(&out.join("merged.ply")).unwrap();
+    let ids = merged.scalar("submap").unwrap();
+    assert!(
+        ids.contains(&0.0) && ids.contains(&1.0),
+        "both submaps in the merge"
+    );
+    assert!(merged.scalar("log_std_combined").is_some());
+    let kept: u64 = report["per_submap"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["kept"].as_u64().unwrap())
+        .sum();
+    assert!(
+        merged.len() as u64 <= kept && merged.len() > 100,
+        "{} of {kept}",
+        merged.len()
+    );
+    let acc = report["evaluation"]["filtered"]["accuracy_m"]
+        .as_f64()
+        .unwrap();
+    assert!(acc.is_finite() && acc > 0.0, "{acc}");
+
+    // A submap whose run did not finish (no train.json) is trained again; the finished one is kept.
+    std::fs::remove_file(out.join("train/submap_01/train.json")).unwrap();
+    let said = ok(&args);
+    assert!(said.contains("submap_00 (1/2): done earlier"), "{said}");
+    assert!(said.contains("submap_01 (2/2): training"), "{said}");
+    assert!(
+        json(&out.join("report.json"))["merged_points"]
+            .as_u64()
+            .unwrap()
+            > 100
+    );
+
+    let slurm = silvr(&["reconstruct", d, "--out", o, "--scheduler", "slurm"]);
+    assert!(!slurm.status.success());
+    assert!(String::from_utf8_lossy(&slurm.stderr).contains("only local"));
 }
