@@ -14,6 +14,7 @@ pub mod image;
 mod kdtree;
 pub mod metrics;
 pub mod occupancy;
+pub mod options;
 pub mod plot;
 pub mod poses;
 pub mod report;

@@ -1,6 +1,6 @@
 //! Evaluation reports (JSON) and error-coloured clouds.
 
-use super::metrics::GeometryOptions;
+use super::options::GeometryOptions;
 use crate::pointcloud::{write_atomic, PointCloud};
 use serde::Serialize;
 use std::collections::BTreeMap;
