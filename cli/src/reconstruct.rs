@@ -5,7 +5,9 @@
 //! merged map filtered and unfiltered.
 //!
 //! Scheduler: `local`, one submap after another. A submap whose `train.json` exists is done and skipped,
-//! so a rerun after a kill redoes only the submaps that had not finished. Slurm arrays, the
+//! so a rerun after a kill redoes only the submaps that had not finished. A submap that fails is written
+//! to `train/NAME.error.txt` and left out of the merge; the others go on, and the run exits non-zero
+//! naming it. Slurm arrays, the
 //! `reconstruct-task` command and the blended renders are the rest of the issue.
 
 use std::path::{Path, PathBuf};
@@ -102,6 +104,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         anyhow::bail!("{}/manifest.json lists no submaps", subs.display());
     }
     let mut per_submap = Vec::new();
+    let mut failed = Vec::new();
     let mut filtered = Vec::new();
     let mut unfiltered = Vec::new();
     for (k, name) in names.iter().enumerate() {
@@ -118,7 +121,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             eprintln!("[reconstruct] {name} ({}/{}): training", k + 1, names.len());
             // A killed run leaves a partial folder: start that submap again.
             let _ = std::fs::remove_dir_all(&dir);
-            train::run(&TrainArgs {
+            let trained = train::run(&TrainArgs {
                 dataset: subs.join(name),
                 mode,
                 steps: c.steps,
@@ -144,12 +147,25 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
                     }
                 }),
             })
-            .with_context(|| {
-                format!(
-                    "submap {name} (its log: the lines above; its folder {})",
-                    dir.display()
-                )
-            })?;
+            .with_context(|| format!("submap {name}"));
+            // A failed submap is reported with its error file and does not stop the others.
+            if let Err(e) = trained {
+                let log = c.out.join("train").join(format!("{name}.error.txt"));
+                let text = format!("{e:#}\n");
+                let _ = std::fs::create_dir_all(c.out.join("train"));
+                let _ = std::fs::write(&log, &text);
+                eprintln!(
+                    "[reconstruct] {name} failed: {e:#} (written to {}); the others go on",
+                    log.display()
+                );
+                failed.push(serde_json::json!({
+                    "name": name,
+                    "error": text.trim_end(),
+                    "log": log,
+                }));
+                continue;
+            }
+            let _ = std::fs::remove_file(c.out.join("train").join(format!("{name}.error.txt")));
         }
         let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(&done)?)?;
         let read = |f: &str| {
@@ -172,6 +188,13 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         }));
         filtered.push((k as u32, kept));
         unfiltered.push((k as u32, all));
+    }
+    if filtered.is_empty() {
+        anyhow::bail!(
+            "every submap failed ({}); see the error files under {}",
+            names.join(", "),
+            c.out.join("train").display()
+        );
     }
     let merge_voxel = silvr_core::submap::MERGE_VOXEL_M;
     let merged = silvr_core::submap::merge(&filtered, merge_voxel);
@@ -208,6 +231,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         "submaps": plan,
         "per_submap": per_submap,
         "merge": { "rule": "per 0.2 m voxel, the submap with the lowest median log_std_combined there keeps its points", "voxel_m": merge_voxel },
+        "failed": failed,
         "merged_points": merged.len(),
         "merged_unfiltered_points": merged_all.len(),
         "evaluation": evaluation,
@@ -221,6 +245,16 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         total.elapsed().as_secs_f64(),
         crate::serve::open_command(&c.out)
     );
+    if !failed.is_empty() {
+        let names: Vec<&str> = failed.iter().filter_map(|f| f["name"].as_str()).collect();
+        anyhow::bail!(
+            "{} of {} submaps failed ({}): the map above is merged without them; fix the cause and rerun on {} to train only those",
+            failed.len(),
+            per_submap.len() + failed.len(),
+            names.join(", "),
+            c.out.display()
+        );
+    }
     Ok(())
 }
 

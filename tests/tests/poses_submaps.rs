@@ -245,12 +245,25 @@ fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
 }
 
 /// `silvr reconstruct` on the local scheduler: two covis submaps trained on WGSL with their uncertainty,
-/// merged with a submap id per point and scored against ground truth; a rerun keeps finished submaps and
-/// redoes one whose run did not finish.
+/// merged with a submap id per point and scored against ground truth; a submap that fails (a corrupt
+/// image only it sees) is reported and left out while the other finishes; the rerun after the fix keeps
+/// the finished submap and trains only the failed one; so does a rerun after a killed one.
 #[test]
 fn reconstruct_trains_each_submap_merges_and_resumes() {
     let tmp = tempfile::tempdir().unwrap();
-    let d = world().to_str().unwrap();
+    // A copy of the world: one of its images gets broken and mended.
+    let data = tmp.path().join("micro");
+    let cp = Command::new("cp")
+        .arg("-r")
+        .arg(world())
+        .arg(&data)
+        .status()
+        .unwrap();
+    assert!(cp.success());
+    let d = data.to_str().unwrap();
+    let image = data.join("images/cam_front/00011.png");
+    let good = std::fs::read(&image).unwrap();
+    std::fs::write(&image, b"not a PNG").unwrap();
     let out = tmp.path().join("rec");
     let o = out.to_str().unwrap();
     let args = [
@@ -273,9 +286,28 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
         "--uncertainty-batches",
         "2",
     ];
-    let said = ok(&args);
-    assert!(said.contains("submap_01 (2/2): training"), "{said}");
+    let broken = silvr(&args);
+    let said = String::from_utf8_lossy(&broken.stderr).into_owned();
+    assert!(!broken.status.success(), "{said}");
+    assert!(
+        said.contains("submap_01 failed") && said.contains("00011.png"),
+        "{said}"
+    );
+    assert!(said.contains("1 of 2 submaps failed (submap_01)"), "{said}");
     let report = json(&out.join("report.json"));
+    assert_eq!(report["failed"][0]["name"], "submap_01");
+    assert!(out.join("train/submap_01.error.txt").is_file());
+    let merged = silvr_core::pointcloud::read_ply(&out.join("merged.ply")).unwrap();
+    assert!(merged.scalar("submap").unwrap().iter().all(|&s| s == 0.0));
+
+    // Mended: the rerun keeps submap_00 and trains submap_01.
+    std::fs::write(&image, good).unwrap();
+    let said = ok(&args);
+    assert!(said.contains("submap_00 (1/2): done earlier"), "{said}");
+    assert!(said.contains("submap_01 (2/2): training"), "{said}");
+    assert!(!out.join("train/submap_01.error.txt").exists());
+    let report = json(&out.join("report.json"));
+    assert!(report["failed"].as_array().unwrap().is_empty());
     assert_eq!(report["per_submap"].as_array().unwrap().len(), 2);
     assert_eq!(report["submaps"]["method"], "covis");
     let merged = silvr_core::pointcloud::read_ply(&out.join("merged.ply")).unwrap();
@@ -301,7 +333,7 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
         .unwrap();
     assert!(acc.is_finite() && acc > 0.0, "{acc}");
 
-    // A submap whose run did not finish (no train.json) is trained again; the finished one is kept.
+    // A submap whose run did not finish (no train.json: killed) is trained again; the finished one is kept.
     std::fs::remove_file(out.join("train/submap_01/train.json")).unwrap();
     let said = ok(&args);
     assert!(said.contains("submap_00 (1/2): done earlier"), "{said}");
