@@ -535,6 +535,17 @@ fn main() {
     }
 }
 
+/// The transforms.json a command named (a dataset folder means the one inside it). Plain files only:
+/// these commands write paths relative to it or read poses, so the archives `source::open` also takes
+/// are not for them.
+pub(crate) fn transforms_file(p: &Path) -> PathBuf {
+    if p.is_dir() {
+        p.join("transforms.json")
+    } else {
+        p.to_path_buf()
+    }
+}
+
 /// `silvr pairs`: candidate pairs from a transforms.json's poses, as a COLMAP match list.
 fn pairs(dataset: &Path, out: &Path, opts: silvr_core::sfm::pairs::PairOptions) -> Result<()> {
     for (what, v) in [
@@ -546,11 +557,7 @@ fn pairs(dataset: &Path, out: &Path, opts: silvr_core::sfm::pairs::PairOptions) 
             anyhow::bail!("{what} {v}: expected a finite number ≥ 0");
         }
     }
-    let json = if dataset.is_dir() {
-        dataset.join("transforms.json")
-    } else {
-        dataset.to_path_buf()
-    };
+    let json = transforms_file(dataset);
     let (frames, _, _) = silvr_core::dataset::read_frames(&json)?;
     let cams = frames
         .iter()
@@ -580,14 +587,8 @@ fn pairs(dataset: &Path, out: &Path, opts: silvr_core::sfm::pairs::PairOptions) 
 
 /// `silvr eval-poses`: ATE / rotation / RPE of one transforms.json against another.
 fn eval_poses(est: &Path, gt: &Path, out: Option<&Path>) -> Result<()> {
-    let file = |p: &Path| {
-        if p.is_dir() {
-            p.join("transforms.json")
-        } else {
-            p.to_path_buf()
-        }
-    };
-    let e = silvr_core::eval::poses::compare_transforms(&file(est), &file(gt))?;
+    let e =
+        silvr_core::eval::poses::compare_transforms(&transforms_file(est), &transforms_file(gt))?;
     eprintln!("{}", pose_line(&e));
     let json = serde_json::to_string_pretty(&e)?;
     match out {

@@ -211,7 +211,10 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         merged_path.display()
     );
     // Evaluation against ground truth when the dataset has it.
-    let gt = dataset_root(&c.dataset);
+    let gt = crate::transforms_file(&c.dataset)
+        .parent()
+        .unwrap_or(Path::new("."))
+        .to_path_buf();
     let evaluation = if gt.join("gt/cloud.ply").is_file() {
         let mut table = serde_json::Map::new();
         let mut rows = Vec::new();
@@ -256,13 +259,4 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         );
     }
     Ok(())
-}
-
-/// The dataset's folder (the argument, or the folder of a transforms.json).
-fn dataset_root(p: &Path) -> PathBuf {
-    if p.is_dir() {
-        p.to_path_buf()
-    } else {
-        p.parent().unwrap_or(Path::new(".")).to_path_buf()
-    }
 }

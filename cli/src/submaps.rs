@@ -29,11 +29,7 @@ pub fn run(
     if !(overlap.is_finite() && overlap >= 0.0) {
         anyhow::bail!("--overlap {overlap}: expected a distance in metres ≥ 0");
     }
-    let json = if dataset.is_dir() {
-        dataset.join("transforms.json")
-    } else {
-        dataset.to_path_buf()
-    };
+    let json = crate::transforms_file(dataset);
     let root_dir = json.parent().unwrap_or(Path::new(".")).to_path_buf();
     let text =
         std::fs::read_to_string(&json).with_context(|| format!("reading {}", json.display()))?;

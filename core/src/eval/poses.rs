@@ -12,6 +12,7 @@ use std::path::Path;
 use glam::DVec3;
 use serde::Serialize;
 
+use super::metrics::median;
 use crate::dataset::{self, DatasetError};
 use crate::geometry::{GeometryError, Se3, Sim3};
 
@@ -187,20 +188,6 @@ fn rms(v: &[f64]) -> f64 {
         return f64::NAN;
     }
     (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt()
-}
-
-fn median(v: &[f64]) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    let n = s.len();
-    if n % 2 == 1 {
-        s[n / 2]
-    } else {
-        0.5 * (s[n / 2 - 1] + s[n / 2])
-    }
 }
 
 #[cfg(test)]

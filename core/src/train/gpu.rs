@@ -313,8 +313,14 @@ impl GpuEngine {
     /// with no normal rays (a lower bound; the exact check is at allocation), so a run asked for an
     /// impossible batch fails before its first step builds one.
     pub fn check_batch(&self, rays: usize) -> Result<(), GpuError> {
+        self.check_fits(rays.max(1), 0)
+    }
+
+    /// [`GpuError::BufferTooLarge`] when the largest work buffer of a batch of `rays` rays
+    /// (`normal_rays` with normals) passes the device's binding limit.
+    fn check_fits(&self, rays: usize, normal_rays: usize) -> Result<(), GpuError> {
         let max = self.gpu.max_binding_bytes();
-        let (what, words) = self.largest_work_buffer(rays.max(1), 0);
+        let (what, words) = self.largest_work_buffer(rays, normal_rays);
         if words as u64 * 4 > max {
             return Err(GpuError::BufferTooLarge {
                 what: format!("the largest {what} of a {rays}-ray batch"),
@@ -357,14 +363,7 @@ impl GpuEngine {
         }
         // Refuse a batch whose largest buffer cannot be bound before allocating any of them (a browser's
         // GPU process may not survive gigabytes of buffers allocated on the way to the one that fails).
-        let (what, words) = self.largest_work_buffer(rays, normal_rays);
-        if words as u64 * 4 > max {
-            return Err(GpuError::BufferTooLarge {
-                what: format!("the largest {what} of a {rays}-ray batch"),
-                bytes: words as u64 * 4,
-                max,
-            });
-        }
+        self.check_fits(rays, normal_rays)?;
         self.work = None;
         let scope = self
             .gpu
