@@ -14,6 +14,7 @@ use silvr_core::train::export::ExportDepth;
 
 mod backend;
 mod ingest;
+mod poses;
 mod reconstruct;
 mod serve;
 mod submaps;
@@ -112,6 +113,35 @@ enum Command {
         /// Keyframes within this many metres of a neighbouring submap's are trained by both.
         #[arg(long, default_value_t = 2.0)]
         overlap: f64,
+    },
+    /// Refine a SLAM prior's camera poses by structure from motion bootstrapped from it: SIFT features,
+    /// matching gated by the prior's epipolar geometry, tracks, triangulation, bundle adjustment with the
+    /// odometry as prior terms and the rig as a constraint, Sim(3) back to the prior's metric frame. Writes
+    /// a folder that `silvr train` accepts (its transforms.json points back at the dataset's images), a
+    /// COLMAP text model (colmap/) and report.json (registered images, reprojection RMSE, time per stage)
+    Poses {
+        /// Dataset folder (its transforms.json) or the transforms file holding the prior
+        /// (a synthetic world's transforms_prior.json).
+        dataset: PathBuf,
+        /// Output folder (must not exist).
+        #[arg(long)]
+        out: PathBuf,
+        /// Exact poses to score the prior and the refined poses against (ATE, rotation, RPE).
+        #[arg(long)]
+        gt: Option<PathBuf>,
+        /// Refine each camera's place on the rig too (default: the calibration is a constraint).
+        #[arg(long)]
+        refine_extrinsics: bool,
+        /// Strongest SIFT features kept per image.
+        #[arg(long, default_value_t = 4096)]
+        max_features: usize,
+        /// SIFT's difference-of-Gaussians peak threshold (images in [0, 1]); default 0.0025, lower
+        /// than COLMAP's 0.0067 (tuned for photographs) so small or low-contrast images keep enough.
+        #[arg(long)]
+        peak_threshold: Option<f32>,
+        /// No progress lines.
+        #[arg(long)]
+        quiet: bool,
     },
     /// Candidate image pairs to match, from the poses of a transforms.json (a SLAM prior: centres near,
     /// optical axes within an angle, view frusta overlapping): one `image1 image2` line per pair, the
@@ -386,6 +416,24 @@ fn main() {
         Command::BenchIngest(c) => ingest::bench(c, open_gpu),
         Command::Import(c) => ingest::import(c, open_gpu),
         Command::Export(c) => ingest::export(c),
+        Command::Poses {
+            dataset,
+            out,
+            gt,
+            refine_extrinsics,
+            max_features,
+            peak_threshold,
+            quiet,
+        } => poses::run(&poses::PosesArgs {
+            dataset,
+            out,
+            gt,
+            refine_extrinsics,
+            max_features,
+            peak_threshold,
+            quiet,
+        })
+        .map(|_| ()),
         Command::EvalPoses { est, gt, out } => eval_poses(&est, &gt, out.as_deref()),
         Command::Pairs {
             dataset,

@@ -1,0 +1,725 @@
+//! The poses stage (the paper's §Large-scale Pose Trajectory Estimation): the SLAM trajectory
+//! bootstraps structure from motion instead of COLMAP's search from scratch.
+//!
+//! 1. SIFT features per image ([`super::features`]), masked to the lens's valid circle and off the sky;
+//! 2. candidate pairs from the prior ([`super::pairs`]), matched under the prior's epipolar gate
+//!    ([`super::matching`]);
+//! 3. tracks ([`super::tracks`]), triangulated from the prior poses ([`super::triangulate`]);
+//! 4. bundle adjustment ([`super::ba`]) of one pose per keyframe (the rig's extrinsics fixed), the points,
+//!    and the SLAM odometry between consecutive keyframes as prior terms, in rounds: re-triangulate with
+//!    the refined poses under a tighter reprojection gate, adjust again;
+//! 5. a Sim(3) (Umeyama, trimmed) from the refined keyframe centres to the prior's restores the SLAM's
+//!    metric frame.
+//!
+//! The rig: frames that share a `keyframe` index were taken at one instant by cameras whose relative
+//! poses are the calibration; the keyframe's pose is its first camera's (the reference camera), the
+//! others hang off it by `T_ref_cam`, read from the prior (SLAM moves the rig as one body). Frames
+//! without a keyframe index are each their own keyframe.
+
+use std::collections::BTreeMap;
+
+use glam::{DVec2, DVec3};
+use serde::Serialize;
+
+use super::ba::{self, AbsolutePrior, BaOptions, BaProblem, BaReport, Observation, RelativePrior};
+use super::features::{self, Features, SiftOptions};
+use super::matching::{self, EpipolarGate, MatchOptions};
+use super::pairs::{self, PairOptions};
+use super::tracks::{self, FeatureRef, PairMatches, TrackStats};
+use super::triangulate::{self, TriangulateOptions, View};
+use crate::camera::CameraModel;
+use crate::geometry::{Se3, Sim3};
+
+/// One image of the problem: its name (for messages and outputs), camera, prior pose and rig slot.
+#[derive(Clone, Debug)]
+pub struct PoseFrame {
+    pub name: String,
+    pub model: CameraModel,
+    /// OpenCV-axes `T_world_cam` from the SLAM prior.
+    pub prior: Se3,
+    pub keyframe: Option<usize>,
+    pub camera: Option<String>,
+}
+
+/// A decoded image for feature extraction: grey in [0, 1] and the usable-pixel mask (not sky).
+pub struct GrayImage {
+    pub width: u32,
+    pub height: u32,
+    pub gray: Vec<f32>,
+    pub sky: Option<Vec<bool>>,
+}
+
+/// Settings of every stage.
+#[derive(Clone, Debug)]
+pub struct PosesOptions {
+    pub sift: SiftOptions,
+    pub pairs: PairOptions,
+    pub matching: MatchOptions,
+    /// Reprojection gate (px) of the triangulate ↔ adjust rounds: loose while the poses are the prior's
+    /// (its gross errors are several pixels), then tighter as they improve.
+    pub rounds_px: Vec<f64>,
+    pub min_angle_deg: f64,
+    /// The SLAM odometry's 1-σ between consecutive keyframes.
+    pub odometry_sigma_m: f64,
+    pub odometry_sigma_deg: f64,
+    /// A weak pull of each keyframe towards its prior pose: fixes the gauge in the SLAM frame.
+    pub absolute_sigma_m: f64,
+    pub absolute_sigma_deg: f64,
+    pub huber_px: f64,
+    /// An image counts as registered with at least this many inlier observations.
+    pub min_observations: usize,
+    pub refine_extrinsics: bool,
+}
+
+impl Default for PosesOptions {
+    fn default() -> Self {
+        PosesOptions {
+            // COLMAP's peak threshold (0.02 / 3) is tuned for photographs; on 360x270 renders of the
+            // synthetic street it kept ~250 features per image and left the poses 4x better than the
+            // prior; 0.0025 keeps ~650 and 12x (BENCHMARKS.md, poses).
+            sift: SiftOptions {
+                peak_threshold: 0.0025,
+                ..SiftOptions::default()
+            },
+            pairs: PairOptions::default(),
+            matching: MatchOptions::default(),
+            rounds_px: vec![8.0, 4.0, 2.0],
+            min_angle_deg: 1.5,
+            odometry_sigma_m: 0.03,
+            odometry_sigma_deg: 0.3,
+            absolute_sigma_m: 1.0,
+            absolute_sigma_deg: 10.0,
+            huber_px: 2.0,
+            min_observations: 15,
+            refine_extrinsics: false,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum PosesError {
+    #[error("{0}")]
+    Image(String),
+    #[error("features of {image}: {detail}")]
+    Features { image: String, detail: String },
+    #[error("rig: {0}")]
+    Rig(String),
+    #[error("nothing to adjust: {0}")]
+    Empty(String),
+    #[error("bundle adjustment: {0}")]
+    Ba(#[from] ba::BaError),
+    #[error("Sim(3) alignment to the prior: {0}")]
+    Align(String),
+}
+
+/// One stage's wall time.
+#[derive(Clone, Debug, Serialize)]
+pub struct StageTime {
+    pub stage: String,
+    pub seconds: f64,
+}
+
+/// Per-image outcome.
+#[derive(Clone, Debug, Serialize)]
+pub struct ImageReport {
+    pub name: String,
+    pub features: usize,
+    pub observations: usize,
+    pub registered: bool,
+    /// Why not, when not.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+}
+
+/// What the poses stage did and how well.
+#[derive(Clone, Debug, Serialize)]
+pub struct PosesReport {
+    pub images: usize,
+    pub keyframes: usize,
+    pub registered: usize,
+    pub registered_fraction: f64,
+    pub candidate_pairs: usize,
+    pub matched_pairs: usize,
+    pub matches: usize,
+    pub tracks: TrackStats,
+    pub points: usize,
+    pub observations: usize,
+    pub observations_per_image_mean: f64,
+    pub observations_per_image_min: usize,
+    /// Reprojection RMSE (px) of the first round's points on the prior poses, and at the end.
+    pub rmse_prior_px: f64,
+    pub rmse_px: f64,
+    pub rounds: Vec<BaReport>,
+    /// Refined → prior frame (scale ≈ 1: the odometry priors already carry metric scale).
+    pub sim3_scale: f64,
+    pub sim3_inliers: usize,
+    /// Connected parts of the match graph over keyframes (1: every keyframe tied to the rest by
+    /// features; more: only the odometry holds them together).
+    pub components: usize,
+    pub stages: Vec<StageTime>,
+    pub per_image: Vec<ImageReport>,
+}
+
+/// The refined problem.
+pub struct PosesResult {
+    /// OpenCV-axes `T_world_cam` per frame, in the input's order (unregistered images keep the prior's
+    /// pose carried by their keyframe's correction where the keyframe registered).
+    pub poses: Vec<Se3>,
+    pub points: Vec<DVec3>,
+    /// Each point's observations: (frame index, pixel).
+    pub tracks: Vec<Vec<(usize, DVec2)>>,
+    pub features: Vec<Features>,
+    pub report: PosesReport,
+}
+
+/// A stage's progress: (stage, done, total).
+pub type ProgressFn<'a> = &'a (dyn Fn(&str, usize, usize) + Sync);
+
+/// The rig structure of the frames: keyframe and camera slot of each frame, the camera models, and
+/// each slot's `T_ref_cam` from the prior.
+struct Rig {
+    keyframe_of: Vec<usize>,
+    camera_of: Vec<usize>,
+    models: Vec<CameraModel>,
+    extrinsics: Vec<Se3>,
+    /// Prior `T_world_ref` per keyframe.
+    prior_base: Vec<Se3>,
+    /// Keyframe order along the path (for odometry), as given by the keyframe indices.
+    keyframes: usize,
+}
+
+fn rig_of(frames: &[PoseFrame]) -> Result<Rig, PosesError> {
+    let n = frames.len();
+    let rig_mode = frames
+        .iter()
+        .all(|f| f.keyframe.is_some() && f.camera.is_some());
+    let mut camera_names: Vec<String> = Vec::new();
+    let mut keyframe_ids: BTreeMap<usize, usize> = BTreeMap::new();
+    let mut keyframe_of = vec![0; n];
+    let mut camera_of = vec![0; n];
+    if rig_mode {
+        for f in frames {
+            let c = f.camera.clone().unwrap_or_default();
+            if !camera_names.contains(&c) {
+                camera_names.push(c);
+            }
+            let next = keyframe_ids.len();
+            keyframe_ids.entry(f.keyframe.unwrap_or(0)).or_insert(next);
+        }
+        // Keyframes in path order (their indices), not file order.
+        for (k, v) in keyframe_ids.values_mut().enumerate() {
+            *v = k;
+        }
+        for (i, f) in frames.iter().enumerate() {
+            keyframe_of[i] = keyframe_ids[&f.keyframe.unwrap_or(0)];
+            let c = f.camera.as_deref().unwrap_or_default();
+            camera_of[i] = camera_names.iter().position(|x| x == c).unwrap_or(0);
+        }
+    } else {
+        keyframe_of = (0..n).collect();
+    }
+    let keyframes = if rig_mode { keyframe_ids.len() } else { n };
+    let ncam = if rig_mode { camera_names.len() } else { 0 };
+    // Models: one per rig camera (must agree), or one per distinct model without a rig.
+    let mut models: Vec<CameraModel> = Vec::new();
+    if rig_mode {
+        models = vec![frames[0].model; ncam];
+        let mut seen = vec![false; ncam];
+        for (i, f) in frames.iter().enumerate() {
+            let c = camera_of[i];
+            if !seen[c] {
+                models[c] = f.model;
+                seen[c] = true;
+            } else if models[c] != f.model {
+                return Err(PosesError::Rig(format!(
+                    "{} has other intrinsics than the rest of camera {:?}",
+                    f.name, camera_names[c]
+                )));
+            }
+        }
+    } else {
+        for (i, f) in frames.iter().enumerate() {
+            camera_of[i] = match models.iter().position(|m| *m == f.model) {
+                Some(c) => c,
+                None => {
+                    models.push(f.model);
+                    models.len() - 1
+                }
+            };
+        }
+    }
+    let ncam = models.len();
+    // Reference slot per keyframe: camera 0 when present. Extrinsics from the first keyframe that has
+    // both the reference camera and the other one.
+    let mut by_key: Vec<Vec<usize>> = vec![Vec::new(); keyframes];
+    for i in 0..n {
+        by_key[keyframe_of[i]].push(i);
+    }
+    let mut extrinsics = vec![Se3::IDENTITY; ncam];
+    if rig_mode {
+        let mut found = vec![false; ncam];
+        found[0] = true;
+        for members in &by_key {
+            let Some(&r) = members.iter().find(|&&i| camera_of[i] == 0) else {
+                continue;
+            };
+            for &i in members {
+                if !found[camera_of[i]] {
+                    extrinsics[camera_of[i]] = frames[r].prior.inverse() * frames[i].prior;
+                    found[camera_of[i]] = true;
+                }
+            }
+        }
+        if let Some(c) = found.iter().position(|f| !f) {
+            return Err(PosesError::Rig(format!(
+                "camera {:?} never appears at a keyframe together with {:?}: its place on the rig is unknown",
+                camera_names[c], camera_names[0]
+            )));
+        }
+    }
+    let prior_base: Vec<Se3> = by_key
+        .iter()
+        .map(|members| {
+            let i = members[0];
+            frames[i].prior * extrinsics[camera_of[i]].inverse()
+        })
+        .collect();
+    Ok(Rig {
+        keyframe_of,
+        camera_of,
+        models,
+        extrinsics,
+        prior_base,
+        keyframes,
+    })
+}
+
+/// The mask of pixels whose ray the lens model can invert (the fisheye's circle), 2 px in from its edge.
+pub fn lens_mask(model: &CameraModel) -> Vec<bool> {
+    let (w, h) = (model.width as usize, model.height as usize);
+    let amax = model.valid_angle();
+    let mut mask = vec![false; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let p = DVec2::new(x as f64, y as f64);
+            mask[y * w + x] = [
+                DVec2::ZERO,
+                DVec2::new(2.0, 0.0),
+                DVec2::new(-2.0, 0.0),
+                DVec2::new(0.0, 2.0),
+                DVec2::new(0.0, -2.0),
+            ]
+            .iter()
+            .all(|d| model.unproject_within(p + *d, amax).is_some());
+        }
+    }
+    mask
+}
+
+/// Refines the prior poses of `frames`. `load(i)` decodes image i (grey, optional sky mask).
+pub fn refine_poses(
+    frames: &[PoseFrame],
+    load: &(dyn Fn(usize) -> Result<GrayImage, String> + Sync),
+    opts: &PosesOptions,
+    progress: ProgressFn,
+) -> Result<PosesResult, PosesError> {
+    use rayon::prelude::*;
+    let clock = web_time::Instant::now();
+    let mut stages: Vec<StageTime> = Vec::new();
+    let mut lap = {
+        let mut last = 0.0;
+        move |stages: &mut Vec<StageTime>, name: &str| {
+            let now = clock.elapsed().as_secs_f64();
+            stages.push(StageTime {
+                stage: name.into(),
+                seconds: now - last,
+            });
+            last = now;
+        }
+    };
+    let n = frames.len();
+    if n < 2 {
+        return Err(PosesError::Empty(format!("{n} image(s); need at least 2")));
+    }
+    let rig = rig_of(frames)?;
+
+    // 1. Features.
+    let masks: Vec<Vec<bool>> = rig.models.par_iter().map(lens_mask).collect();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let features: Vec<Features> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let img = load(i).map_err(PosesError::Image)?;
+            let m = &frames[i].model;
+            if (img.width, img.height) != (m.width, m.height) {
+                return Err(PosesError::Features {
+                    image: frames[i].name.clone(),
+                    detail: format!(
+                        "image is {}x{}, its camera {}x{}",
+                        img.width, img.height, m.width, m.height
+                    ),
+                });
+            }
+            let mut mask = masks[rig.camera_of[i]].clone();
+            if let Some(sky) = &img.sky {
+                for (k, s) in mask.iter_mut().zip(sky) {
+                    *k &= !*s;
+                }
+            }
+            let f = features::extract(img.width, img.height, &img.gray, Some(&mask), &opts.sift)
+                .map_err(|e| PosesError::Features {
+                    image: frames[i].name.clone(),
+                    detail: e.to_string(),
+                })?;
+            let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            progress("features", d, n);
+            Ok(f)
+        })
+        .collect::<Result<_, _>>()?;
+    lap(&mut stages, "features");
+
+    // Each feature's ray in its camera frame.
+    let rays: Vec<Vec<Option<DVec3>>> = features
+        .par_iter()
+        .enumerate()
+        .map(|(i, f)| {
+            let m = &frames[i].model;
+            let amax = m.valid_angle();
+            f.keypoints
+                .iter()
+                .map(|k| {
+                    m.unproject_within(DVec2::new(k.x as f64, k.y as f64), amax)
+                        .map(|d| d.normalize())
+                })
+                .collect()
+        })
+        .collect();
+
+    // 2. Pairs and matches.
+    let cams: Vec<(CameraModel, Se3)> = frames.iter().map(|f| (f.model, f.prior)).collect();
+    let candidates = pairs::candidate_pairs(&cams, &opts.pairs);
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let total = candidates.len();
+    let matches: Vec<PairMatches> = candidates
+        .par_iter()
+        .map(|p| {
+            let gate = EpipolarGate::new(&frames[p.i].prior, &frames[p.j].prior, &opts.matching);
+            let m = matching::match_features(
+                &features[p.i].descriptors,
+                &rays[p.i],
+                &features[p.j].descriptors,
+                &rays[p.j],
+                Some(&gate),
+                &opts.matching,
+            );
+            let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            if d.is_multiple_of(16) || d == total {
+                progress("matching", d, total);
+            }
+            ((p.i, p.j), m)
+        })
+        .filter(|(_, m)| m.len() >= opts.matching.min_matches)
+        .collect();
+    let match_count: usize = matches.iter().map(|(_, m)| m.len()).sum();
+    lap(&mut stages, "matching");
+
+    // 3. Tracks.
+    let counts: Vec<usize> = features.iter().map(Features::len).collect();
+    let (tracks, track_stats) = tracks::build_tracks(&counts, &matches);
+    let components = components(rig.keyframes, &matches, &rig.keyframe_of);
+    lap(&mut stages, "tracks");
+
+    // 4. Triangulate ↔ adjust rounds.
+    let mut problem = BaProblem {
+        cameras: rig.models.clone(),
+        extrinsics: rig.extrinsics.clone(),
+        poses: rig.prior_base.clone(),
+        points: Vec::new(),
+        observations: Vec::new(),
+        relative_priors: odometry(&rig.prior_base, opts),
+        absolute_priors: rig
+            .prior_base
+            .iter()
+            .enumerate()
+            .map(|(k, p)| AbsolutePrior {
+                pose: k,
+                t_world_base: *p,
+                sigma_m: opts.absolute_sigma_m,
+                sigma_rad: opts.absolute_sigma_deg.to_radians(),
+            })
+            .collect(),
+    };
+    let amax: Vec<f64> = rig.models.iter().map(|m| m.valid_angle()).collect();
+    let mut rounds = Vec::new();
+    let mut rmse_prior = f64::NAN;
+    let nrounds = opts.rounds_px.len();
+    for (round, &gate_px) in opts.rounds_px.iter().enumerate() {
+        progress("adjust", round, nrounds);
+        let world_cam: Vec<Se3> = (0..n)
+            .map(|i| problem.poses[rig.keyframe_of[i]] * problem.extrinsics[rig.camera_of[i]])
+            .collect();
+        let topts = TriangulateOptions {
+            max_error_px: gate_px,
+            min_angle_deg: opts.min_angle_deg,
+        };
+        let tri: Vec<Option<(DVec3, Vec<usize>)>> = tracks
+            .par_iter()
+            .map(|t| {
+                let views: Vec<View> = t
+                    .iter()
+                    .filter_map(|r| {
+                        let i = r.image as usize;
+                        let k = &features[i].keypoints[r.feature as usize];
+                        let c = rig.camera_of[i];
+                        View::new(
+                            &rig.models[c],
+                            amax[c],
+                            &world_cam[i],
+                            DVec2::new(k.x as f64, k.y as f64),
+                        )
+                    })
+                    .collect();
+                // Views that unproject, in the track's order (image ids) for the inlier flags.
+                let ids: Vec<usize> = t
+                    .iter()
+                    .filter(|r| {
+                        let i = r.image as usize;
+                        let k = &features[i].keypoints[r.feature as usize];
+                        rig.models[rig.camera_of[i]]
+                            .unproject_within(
+                                DVec2::new(k.x as f64, k.y as f64),
+                                amax[rig.camera_of[i]],
+                            )
+                            .is_some()
+                    })
+                    .map(|r| r.image as usize)
+                    .collect();
+                let out = triangulate::triangulate(&views, &topts)?;
+                let inl: Vec<usize> = ids
+                    .iter()
+                    .zip(&out.inliers)
+                    .filter(|(_, &k)| k)
+                    .map(|(&i, _)| i)
+                    .collect();
+                Some((out.point, inl))
+            })
+            .collect();
+        problem.points.clear();
+        problem.observations.clear();
+        for (ti, t) in tri.into_iter().enumerate() {
+            let Some((x, images)) = t else { continue };
+            let pid = problem.points.len();
+            problem.points.push(x);
+            for &i in &images {
+                let r = tracks[ti].iter().find(|r| r.image as usize == i).copied();
+                let Some(FeatureRef { feature, .. }) = r else {
+                    continue;
+                };
+                let k = &features[i].keypoints[feature as usize];
+                problem.observations.push(Observation {
+                    pose: rig.keyframe_of[i],
+                    camera: rig.camera_of[i],
+                    point: pid,
+                    uv: DVec2::new(k.x as f64, k.y as f64),
+                });
+            }
+        }
+        if problem.observations.is_empty() {
+            return Err(PosesError::Empty(format!(
+                "no track could be triangulated ({} tracks from {} matched pairs of {} candidates; are the images textureless, or the prior far off?)",
+                tracks.len(),
+                matches.len(),
+                candidates.len()
+            )));
+        }
+        if round == 0 {
+            rmse_prior = rmse(&ba::reprojection_errors(&problem));
+        }
+        let bopts = BaOptions {
+            huber_px: opts.huber_px.min(gate_px),
+            refine_extrinsics: opts.refine_extrinsics,
+            ..BaOptions::default()
+        };
+        let rep = ba::solve(&mut problem, &bopts)?;
+        rounds.push(rep);
+    }
+    // Final inlier gate: drop observations beyond the last round's gate and recount.
+    let last_gate = opts.rounds_px.last().copied().unwrap_or(4.0);
+    let errs = ba::reprojection_errors(&problem);
+    let mut obs_per_image = vec![0usize; n];
+    let mut point_tracks: Vec<Vec<(usize, DVec2)>> = vec![Vec::new(); problem.points.len()];
+    // Map (keyframe, camera) → frame index.
+    let mut frame_of: BTreeMap<(usize, usize), usize> = BTreeMap::new();
+    for i in 0..n {
+        frame_of.insert((rig.keyframe_of[i], rig.camera_of[i]), i);
+    }
+    let mut final_errs = Vec::new();
+    for (o, e) in problem.observations.iter().zip(&errs) {
+        if e.is_some_and(|e| e <= last_gate) {
+            if let Some(&i) = frame_of.get(&(o.pose, o.camera)) {
+                final_errs.push(*e);
+                obs_per_image[i] += 1;
+                point_tracks[o.point].push((i, o.uv));
+            }
+        }
+    }
+    lap(&mut stages, "adjust");
+
+    // 5. Sim(3) to the prior's keyframe centres (trimmed Umeyama).
+    let (sim, inliers) = align_to_prior(&problem.poses, &rig.prior_base)?;
+    let base: Vec<Se3> = problem
+        .poses
+        .iter()
+        .map(|p| sim.transform_pose(p))
+        .collect();
+    let points: Vec<DVec3> = problem
+        .points
+        .iter()
+        .map(|&p| sim.transform_point(p))
+        .collect();
+    lap(&mut stages, "align");
+
+    let poses: Vec<Se3> = (0..n)
+        .map(|i| {
+            let e = problem.extrinsics[rig.camera_of[i]];
+            // The extrinsic is metric; the Sim(3) scale is the SLAM frame's, ≈ 1.
+            base[rig.keyframe_of[i]] * e
+        })
+        .collect();
+    let per_image: Vec<ImageReport> = (0..n)
+        .map(|i| {
+            let registered = obs_per_image[i] >= opts.min_observations;
+            ImageReport {
+                name: frames[i].name.clone(),
+                features: features[i].len(),
+                observations: obs_per_image[i],
+                registered,
+                reason: (!registered).then(|| {
+                    if features[i].len() < opts.min_observations {
+                        format!(
+                            "{} features (textureless, or masked out)",
+                            features[i].len()
+                        )
+                    } else {
+                        format!(
+                            "{} observations after adjustment (fewer than {}): its matches did not survive",
+                            obs_per_image[i], opts.min_observations
+                        )
+                    }
+                }),
+            }
+        })
+        .collect();
+    let registered = per_image.iter().filter(|r| r.registered).count();
+    let total_obs: usize = obs_per_image.iter().sum();
+    let report = PosesReport {
+        images: n,
+        keyframes: rig.keyframes,
+        registered,
+        registered_fraction: registered as f64 / n as f64,
+        candidate_pairs: candidates.len(),
+        matched_pairs: matches.len(),
+        matches: match_count,
+        tracks: track_stats,
+        points: point_tracks.iter().filter(|t| t.len() >= 2).count(),
+        observations: total_obs,
+        observations_per_image_mean: total_obs as f64 / n as f64,
+        observations_per_image_min: obs_per_image.iter().copied().min().unwrap_or(0),
+        rmse_prior_px: rmse_prior,
+        rmse_px: rmse(&final_errs),
+        rounds,
+        sim3_scale: sim.scale,
+        sim3_inliers: inliers,
+        components,
+        stages,
+        per_image,
+    };
+    Ok(PosesResult {
+        poses,
+        points,
+        tracks: point_tracks,
+        features,
+        report,
+    })
+}
+
+fn rmse(errs: &[Option<f64>]) -> f64 {
+    let v: Vec<f64> = errs.iter().flatten().copied().collect();
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    (v.iter().map(|e| e * e).sum::<f64>() / v.len() as f64).sqrt()
+}
+
+/// SLAM odometry terms between consecutive keyframes.
+fn odometry(base: &[Se3], opts: &PosesOptions) -> Vec<RelativePrior> {
+    base.windows(2)
+        .enumerate()
+        .map(|(k, w)| RelativePrior {
+            a: k,
+            b: k + 1,
+            t_a_b: w[0].inverse() * w[1],
+            sigma_m: opts.odometry_sigma_m,
+            sigma_rad: opts.odometry_sigma_deg.to_radians(),
+        })
+        .collect()
+}
+
+/// Connected components of the keyframe graph whose edges are matched pairs.
+fn components(keyframes: usize, matches: &[PairMatches], keyframe_of: &[usize]) -> usize {
+    let mut parent: Vec<usize> = (0..keyframes).collect();
+    fn find(p: &mut [usize], mut x: usize) -> usize {
+        while p[x] != x {
+            p[x] = p[p[x]];
+            x = p[x];
+        }
+        x
+    }
+    for ((i, j), _) in matches {
+        let (a, b) = (
+            find(&mut parent, keyframe_of[*i]),
+            find(&mut parent, keyframe_of[*j]),
+        );
+        if a != b {
+            parent[a] = b;
+        }
+    }
+    (0..keyframes)
+        .filter(|&k| find(&mut parent, k) == k)
+        .count()
+}
+
+/// Umeyama from the refined keyframe centres to the prior's, refitted on those within 3 robust σ
+/// (a prior's gross errors must not tilt the frame).
+fn align_to_prior(refined: &[Se3], prior: &[Se3]) -> Result<(Sim3, usize), PosesError> {
+    let src: Vec<DVec3> = refined.iter().map(|p| p.trans).collect();
+    let dst: Vec<DVec3> = prior.iter().map(|p| p.trans).collect();
+    if src.len() < 3 {
+        // Too few centres to fix a similarity: keep the adjusted frame (the absolute priors hold it).
+        return Ok((Sim3::from_se3(Se3::IDENTITY), src.len()));
+    }
+    let mut keep = vec![true; src.len()];
+    let mut sim = Sim3::from_se3(Se3::IDENTITY);
+    for _ in 0..10 {
+        let (s, d): (Vec<DVec3>, Vec<DVec3>) = src
+            .iter()
+            .zip(&dst)
+            .zip(&keep)
+            .filter(|(_, &k)| k)
+            .map(|((a, b), _)| (*a, *b))
+            .unzip();
+        sim = Sim3::umeyama(&s, &d, true).map_err(|e| PosesError::Align(e.to_string()))?;
+        let r: Vec<f64> = src
+            .iter()
+            .zip(&dst)
+            .map(|(&a, &b)| sim.transform_point(a).distance(b))
+            .collect();
+        let sigma = 1.4826 * crate::eval::metrics::median(&r);
+        let next: Vec<bool> = r.iter().map(|&x| x <= (3.0 * sigma).max(1e-9)).collect();
+        if next == keep || next.iter().filter(|&&k| k).count() < 3 {
+            break;
+        }
+        keep = next;
+    }
+    Ok((sim, keep.iter().filter(|&&k| k).count()))
+}
