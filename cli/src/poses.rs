@@ -179,7 +179,10 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
                 "sky_mask_path",
             ] {
                 if let Some(p) = o.get(k).and_then(Value::as_str).map(String::from) {
-                    o.insert(k.into(), Value::from(format!("{prefix}{p}")));
+                    // Absolute paths already reach their file from anywhere.
+                    if !Path::new(&p).is_absolute() {
+                        o.insert(k.into(), Value::from(format!("{prefix}{p}")));
+                    }
                 }
             }
         }
@@ -187,7 +190,7 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
     for list in ["train_filenames", "val_filenames"] {
         if let Some(arr) = root.get_mut(list).and_then(Value::as_array_mut) {
             for v in arr.iter_mut() {
-                if let Some(s) = v.as_str() {
+                if let Some(s) = v.as_str().filter(|s| !Path::new(s).is_absolute()) {
                     *v = Value::from(format!("{prefix}{s}"));
                 }
             }

@@ -349,3 +349,99 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
     assert!(!slurm.status.success());
     assert!(String::from_utf8_lossy(&slurm.stderr).contains("only local"));
 }
+
+/// `silvr poses` on the micro world's SLAM prior: every image registers, the refined poses beat the
+/// prior against the exact ones (the ci world's ≥ 5x check runs in the demo test), and the output is a
+/// dataset: its transforms.json reaches the dataset's images from where it is written, and the COLMAP
+/// model reads back. A textureless image is named as not registered (with why), never a panic, while its
+/// keyframe's other cameras still carry it; a folder that exists is refused before any work.
+#[test]
+fn poses_refines_the_prior_and_names_a_textureless_image() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = world();
+    let out = tmp.path().join("poses");
+    let said = ok(&[
+        "poses",
+        data.join("transforms_prior.json").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--gt",
+        data.join("transforms.json").to_str().unwrap(),
+    ]);
+    assert!(said.contains("registered 36/36"), "{said}");
+    let r = json(&out.join("report.json"));
+    let (prior, refined) = (&r["errors"]["prior"], &r["errors"]["refined"]);
+    let f = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap();
+    assert!(
+        f(refined, "ate_rmse_m") * 2.0 < f(prior, "ate_rmse_m")
+            && f(refined, "rot_rmse_deg") * 2.0 < f(prior, "rot_rmse_deg"),
+        "{r}"
+    );
+    assert!(f(&r["poses"], "rmse_px") < 1.0, "{r}");
+    assert!(!tmp.path().join(".poses.partial").exists());
+    let t = json(&out.join("transforms.json"));
+    let frames = t["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 36);
+    for fr in frames {
+        for k in ["file_path", "depth_file_path", "sky_mask_path"] {
+            let p = out.join(fr[k].as_str().unwrap());
+            assert!(p.is_file(), "{} does not resolve", p.display());
+        }
+    }
+    let model = silvr_core::ingest::colmap::read_model(&out.join("colmap")).unwrap();
+    assert_eq!(model.images.len(), 36);
+    assert!(model.points.len() > 300, "{} points", model.points.len());
+
+    // One image replaced by flat grey: named, with the reason; the rest still register.
+    let grey = tmp.path().join("grey.png");
+    image::RgbImage::from_pixel(180, 135, image::Rgb([128, 128, 128]))
+        .save(&grey)
+        .unwrap();
+    let mut prior = json(&data.join("transforms_prior.json"));
+    let mut victim = String::new();
+    for (i, fr) in prior["frames"]
+        .as_array_mut()
+        .unwrap()
+        .iter_mut()
+        .enumerate()
+    {
+        for k in [
+            "file_path",
+            "depth_file_path",
+            "normal_file_path",
+            "sky_mask_path",
+        ] {
+            if let Some(p) = fr[k].as_str() {
+                fr[k] = data.join(p).to_str().unwrap().into();
+            }
+        }
+        if i == 4 {
+            victim = fr["file_path"].as_str().unwrap().to_string();
+            fr["file_path"] = grey.to_str().unwrap().into();
+        }
+    }
+    let pj = tmp.path().join("prior.json");
+    std::fs::write(&pj, serde_json::to_vec(&prior).unwrap()).unwrap();
+    let out2 = tmp.path().join("poses2");
+    let said = ok(&[
+        "poses",
+        pj.to_str().unwrap(),
+        "--out",
+        out2.to_str().unwrap(),
+    ]);
+    assert!(
+        said.contains("not registered") && said.contains("grey.png") && said.contains("features"),
+        "{said}"
+    );
+    assert!(said.contains("registered 35/36"), "{said}");
+    assert!(!victim.is_empty());
+    // Refused: the folder exists.
+    let again = silvr(&[
+        "poses",
+        pj.to_str().unwrap(),
+        "--out",
+        out2.to_str().unwrap(),
+    ]);
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("exists"));
+}

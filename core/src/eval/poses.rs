@@ -17,7 +17,7 @@ use crate::dataset::{self, DatasetError};
 use crate::geometry::{GeometryError, Se3, Sim3};
 
 /// Errors of an estimated trajectory against the exact one.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, serde::Deserialize)]
 pub struct PoseErrors {
     pub frames: usize,
     /// Frames the alignment kept (the rest are gross errors).
