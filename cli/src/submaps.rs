@@ -49,7 +49,22 @@ pub fn run(
     } else {
         None
     };
-    let plan = submap::plan(&frames, &json, voxels.as_deref(), &opts)?;
+    // SfM tracks, when the dataset is a `silvr poses` output (its COLMAP model beside transforms.json).
+    let model_dir = root_dir.join("colmap");
+    let tracks = if model_dir.join("images.txt").is_file() {
+        let model = silvr_core::ingest::colmap::read_model(&model_dir)
+            .with_context(|| format!("reading the tracks of {}", model_dir.display()))?;
+        Some(submap::track_sets(&model, frames.len()).with_context(|| {
+            format!(
+                "{} does not hold one image per frame of {} in order (not written by silvr poses?)",
+                model_dir.display(),
+                json.display()
+            )
+        })?)
+    } else {
+        None
+    };
+    let plan = submap::plan(&frames, &json, voxels.as_deref(), tracks.as_deref(), &opts)?;
     if out.exists() {
         anyhow::bail!("{} exists; choose a new folder", out.display());
     }
@@ -102,9 +117,16 @@ pub fn run(
     let covis = plan.covis_cut.map_or(String::new(), |c| {
         format!(
             "; {:.1} % of the co-visible structure spans a boundary",
-            100.0 * c.shared_voxels / c.total_voxels.max(1.0)
+            100.0 * c.shared / c.total.max(1.0)
         )
     });
+    let tracks = plan.track_cut.map_or(String::new(), |c| {
+        format!(
+            "; {:.1} % of the shared SfM tracks",
+            100.0 * c.shared / c.total.max(1.0)
+        )
+    });
+    let covis = format!("{covis}{tracks}");
     eprintln!(
         "{} submaps of {} keyframes by {:?} (cut weight {:.1}{covis}) in {}; train one with: silvr train {}",
         plan.submaps.len(),

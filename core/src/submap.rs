@@ -270,9 +270,9 @@ pub fn overlap(parts: &[Vec<usize>], positions: &[DVec3], margin: f64) -> Vec<Ve
 pub enum Method {
     /// Nearest neighbours by camera position (SiLVR's public code).
     Distance,
-    /// Co-visibility: the structure two keyframes both see. The paper counts shared SfM tracks; until
-    /// `silvr poses` writes tracks, the structure is the lidar's: voxels (`COVIS_VOXEL_M`) hit by the
-    /// lidar depth of both keyframes' images.
+    /// Co-visibility: the structure two keyframes both see. The paper's: SfM tracks both observe (a
+    /// `silvr poses` output's COLMAP model); without tracks, the lidar's: voxels (`COVIS_VOXEL_M`) hit by
+    /// the lidar depth of both keyframes' images.
     Covis,
 }
 
@@ -283,8 +283,31 @@ pub const COVIS_VOXEL_M: f64 = 0.5;
 /// Every `COVIS_STRIDE`-th lidar pixel in each direction is enough to know which voxels an image sees.
 const COVIS_STRIDE: u32 = 2;
 
-/// The co-visibility graph: weight = voxels both nodes' sets hold.
-pub fn covis_graph(voxels: &[std::collections::HashSet<[i32; 3]>]) -> Graph {
+/// What one image sees, as a set of ids: lidar voxels ([`voxel_key`]) or SfM track (3-D point) ids.
+pub type Seen = std::collections::HashSet<u64>;
+
+/// A voxel's id in a [`Seen`] set: 21 bits per axis (±2^20 voxels, ±524 km at 0.5 m).
+pub fn voxel_key(v: [i32; 3]) -> u64 {
+    let b = |x: i32| ((x as i64 + (1 << 20)).clamp(0, (1 << 21) - 1)) as u64;
+    (b(v[0]) << 42) | (b(v[1]) << 21) | b(v[2])
+}
+
+/// Each frame's SfM track ids from a COLMAP model whose images are the frames in order (image id
+/// i + 1 is frame i, as `silvr poses` writes them); `None` when the model does not cover the frames.
+pub fn track_sets(model: &crate::ingest::colmap::ColmapModel, frames: usize) -> Option<Vec<Seen>> {
+    let mut sets = vec![Seen::new(); frames];
+    if model.images.len() != frames {
+        return None;
+    }
+    for img in &model.images {
+        let i = (img.id as usize).checked_sub(1).filter(|&i| i < frames)?;
+        sets[i].extend(img.points2d.iter().filter_map(|p| p.point3d_id));
+    }
+    Some(sets)
+}
+
+/// The co-visibility graph: weight = ids both nodes' sets hold.
+pub fn covis_graph(voxels: &[Seen]) -> Graph {
     let mut g = Graph::new(voxels.len());
     for i in 0..voxels.len() {
         for j in i + 1..voxels.len() {
@@ -306,12 +329,12 @@ pub fn lidar_voxels(
     src: &dyn crate::source::Source,
     frames: &[crate::dataset::NsFrame],
     path: &std::path::Path,
-) -> Result<Vec<std::collections::HashSet<[i32; 3]>>, crate::dataset::DatasetError> {
+) -> Result<Vec<Seen>, crate::dataset::DatasetError> {
     use rayon::prelude::*;
     frames
         .par_iter()
         .map(|f| {
-            let mut set = std::collections::HashSet::new();
+            let mut set = Seen::new();
             let Some(rel) = &f.depth_file_path else {
                 return Ok(set);
             };
@@ -335,7 +358,7 @@ pub fn lidar_voxels(
                     };
                     let world = pose.transform_point(d.normalize() * r as f64);
                     let v = (world / COVIS_VOXEL_M).floor();
-                    set.insert([v.x as i32, v.y as i32, v.z as i32]);
+                    set.insert(voxel_key([v.x as i32, v.y as i32, v.z as i32]));
                 }
             }
             Ok(set)
@@ -387,23 +410,30 @@ pub struct Plan {
     /// The cut scored by lidar co-visibility whatever the method (when the dataset has lidar depth):
     /// the structure seen from both sides of a boundary, which is what a boundary costs the fields.
     pub covis_cut: Option<CovisCut>,
+    /// The cut scored by SfM tracks whatever the method (when tracks were given): shared tracks
+    /// (keyframe pair × track) split between submaps, and over all keyframe pairs.
+    pub track_cut: Option<CovisCut>,
+    /// What co-visibility meant for `method: covis`: `tracks` or `lidar`.
+    pub covis_source: Option<&'static str>,
 }
 
-/// Co-visibility across the cut: voxel pairs (keyframe pair × shared voxel) split between submaps, and
-/// over all keyframe pairs.
+/// Co-visibility across the cut: shared ids (keyframe pair × shared voxel or track) split between
+/// submaps, and over all keyframe pairs.
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct CovisCut {
-    pub shared_voxels: f64,
-    pub total_voxels: f64,
+    pub shared: f64,
+    pub total: f64,
 }
 
 /// Cuts the frames of a `transforms.json` (`frames` as [`crate::dataset::parse_frames`] reads them;
-/// `path` names the file in errors). `voxels`: each frame's lidar voxels ([`lidar_voxels`]), needed
-/// for [`Method::Covis`] and, when given, used to score either cut by co-visibility too.
+/// `path` names the file in errors). `voxels`: each frame's lidar voxels ([`lidar_voxels`]);
+/// `tracks`: each frame's SfM tracks ([`track_sets`]). [`Method::Covis`] cuts by the tracks when given,
+/// else by the voxels; either, when given, also scores the cut.
 pub fn plan(
     frames: &[crate::dataset::NsFrame],
     path: &std::path::Path,
-    voxels: Option<&[std::collections::HashSet<[i32; 3]>]>,
+    voxels: Option<&[Seen]>,
+    tracks: Option<&[Seen]>,
     opts: &SubmapOptions,
 ) -> Result<Plan, crate::dataset::DatasetError> {
     let fail = |detail: String| crate::dataset::DatasetError::Format {
@@ -447,34 +477,42 @@ pub fn plan(
     // graph is arbitrary): at most a sixth of the keyframes, at least 2.
     let k = opts.neighbours.min(nodes.len() / 6).max(2);
     let distance = distance_graph(&positions, k);
-    // Co-visibility per keyframe: the union of its images' voxels.
-    let covis = match voxels {
-        Some(v) if v.iter().any(|s| !s.is_empty()) => {
-            let per_node: Vec<std::collections::HashSet<[i32; 3]>> = nodes
-                .iter()
-                .map(|n| {
-                    n.frames
-                        .iter()
-                        .flat_map(|&i| v[i].iter().copied())
-                        .collect()
-                })
-                .collect();
-            Some(covis_graph(&per_node))
+    // Co-visibility per keyframe: the union of its images' sets.
+    let per_node = |v: &[Seen]| -> Option<Graph> {
+        if !v.iter().any(|s| !s.is_empty()) {
+            return None;
         }
-        _ => None,
+        let sets: Vec<Seen> = nodes
+            .iter()
+            .map(|n| {
+                n.frames
+                    .iter()
+                    .flat_map(|&i| v[i].iter().copied())
+                    .collect()
+            })
+            .collect();
+        Some(covis_graph(&sets))
     };
-    let graph = match opts.method {
-        Method::Distance => &distance,
-        Method::Covis => covis.as_ref().ok_or_else(|| {
-            fail("co-visibility needs lidar depth images (depth_file_path) to see which structure each keyframe sees, and this dataset has none (SfM tracks from `silvr poses` are not built yet); use --method distance".into())
-        })?,
+    let covis = voxels.and_then(per_node);
+    let track_graph = tracks.and_then(per_node);
+    let (graph, covis_source) = match opts.method {
+        Method::Distance => (&distance, None),
+        Method::Covis => match (&track_graph, &covis) {
+            (Some(g), _) => (g, Some("tracks")),
+            (None, Some(g)) => (g, Some("lidar")),
+            (None, None) => return Err(fail("co-visibility needs SfM tracks (run `silvr poses` and cut its output folder) or lidar depth images (depth_file_path), and this dataset has neither; use --method distance".into())),
+        },
     };
     let images: Vec<usize> = nodes.iter().map(|n| n.frames.len()).collect();
     let parts = partition(graph, &images, opts.limit);
     let cut_weight = graph.cut_weight(&parts);
+    let track_cut = track_graph.as_ref().map(|g| CovisCut {
+        shared: g.cut_weight(&parts),
+        total: g.total_weight(),
+    });
     let covis_cut = covis.as_ref().map(|g| CovisCut {
-        shared_voxels: g.cut_weight(&parts),
-        total_voxels: g.total_weight(),
+        shared: g.cut_weight(&parts),
+        total: g.total_weight(),
     });
     let extra = overlap(&parts, &positions, opts.overlap_m);
     let submaps = parts
@@ -504,6 +542,8 @@ pub fn plan(
         submaps,
         cut_weight,
         covis_cut,
+        track_cut,
+        covis_source,
     })
 }
 
@@ -750,15 +790,21 @@ mod tests {
     }
 
     #[test]
-    fn covisibility_counts_shared_voxels_and_cuts_where_little_is_shared() {
+    fn covisibility_counts_shared_and_cuts_where_little_is_shared() {
         use std::collections::HashSet;
         // Six keyframes: 0-2 see voxels 0..10, 3-5 see 8..20 (two shared), one voxel per keyframe of its own.
-        let sets: Vec<HashSet<[i32; 3]>> = (0..6)
+        let sets: Vec<Seen> = (0..6)
             .map(|k| {
                 let range = if k < 3 { 0..10 } else { 8..20 };
-                range.map(|x| [x, 0, 0]).chain([[100 + k, 0, 0]]).collect()
+                range
+                    .map(|x| voxel_key([x, 0, -x]))
+                    .chain([voxel_key([100 + k, 0, 0])])
+                    .collect::<HashSet<u64>>()
             })
             .collect();
+        // Distinct voxels, distinct keys (also negative coordinates).
+        assert_ne!(voxel_key([0, 0, -1]), voxel_key([0, 0, 1]));
+        assert_ne!(voxel_key([1, 0, 0]), voxel_key([0, 1, 0]));
         let g = covis_graph(&sets);
         assert_eq!(g.adj[0].iter().find(|e| e.0 == 1).unwrap().1, 10.0);
         assert_eq!(g.adj[0].iter().find(|e| e.0 == 3).unwrap().1, 2.0);

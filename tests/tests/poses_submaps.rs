@@ -215,7 +215,7 @@ fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
     assert_eq!(mc["method"], "covis");
     let frac = |m: &serde_json::Value| {
         let c = &m["covis_cut"];
-        c["shared_voxels"].as_f64().unwrap() / c["total_voxels"].as_f64().unwrap()
+        c["shared"].as_f64().unwrap() / c["total"].as_f64().unwrap()
     };
     let (fc, fd) = (frac(&mc), frac(&manifest));
     println!("co-visible structure across the cut: covis {fc:.3}, distance {fd:.3}");
@@ -391,6 +391,48 @@ fn poses_refines_the_prior_and_names_a_textureless_image() {
     let model = silvr_core::ingest::colmap::read_model(&out.join("colmap")).unwrap();
     assert_eq!(model.images.len(), 36);
     assert!(model.points.len() > 300, "{} points", model.points.len());
+
+    // The poses output cut into submaps by co-visibility counts shared SfM tracks (the paper's), and
+    // that cut splits fewer shared tracks than the distance baseline's on the same images.
+    let mut track_cut = Vec::new();
+    for method in ["covis", "distance"] {
+        let dir = tmp.path().join(format!("sub-{method}"));
+        ok(&[
+            "submaps",
+            out.to_str().unwrap(),
+            "--out",
+            dir.to_str().unwrap(),
+            "--method",
+            method,
+            "--count",
+            "2",
+        ]);
+        let m = json(&dir.join("manifest.json"));
+        if method == "covis" {
+            assert_eq!(m["covis_source"], "tracks", "{m}");
+        }
+        let c = &m["track_cut"];
+        assert!(c["total"].as_f64().unwrap() > 0.0, "{m}");
+        track_cut.push(c["shared"].as_f64().unwrap());
+        // Every image in at least one submap.
+        let mut seen = std::collections::BTreeSet::new();
+        for s in m["submaps"].as_array().unwrap() {
+            seen.extend(
+                s["frames"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|v| v.as_u64().unwrap()),
+            );
+        }
+        assert_eq!(seen.len(), 36, "{m}");
+    }
+    assert!(
+        track_cut[0] <= track_cut[1],
+        "covis {} vs distance {}",
+        track_cut[0],
+        track_cut[1]
+    );
 
     // One image replaced by flat grey: named, with the reason; the rest still register.
     let grey = tmp.path().join("grey.png");
