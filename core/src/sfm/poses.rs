@@ -723,3 +723,111 @@ fn align_to_prior(refined: &[Se3], prior: &[Se3]) -> Result<(Sim3, usize), Poses
     }
     Ok((sim, keep.iter().filter(|&&k| k).count()))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DQuat;
+
+    fn frame(
+        name: &str,
+        key: Option<usize>,
+        cam: Option<&str>,
+        model: CameraModel,
+        x: f64,
+    ) -> PoseFrame {
+        PoseFrame {
+            name: name.into(),
+            model,
+            prior: Se3::new(DQuat::from_rotation_y(0.1 * x), DVec3::new(x, 0.0, 0.0)),
+            keyframe: key,
+            camera: cam.map(String::from),
+        }
+    }
+
+    /// The rig read from the prior: one pose per keyframe (in keyframe order, not file order), each
+    /// camera's place from a keyframe that has it beside the reference camera; the prior's base pose
+    /// composed with the extrinsic gives back each frame's prior. Inconsistent intrinsics, and a camera
+    /// never seen with the reference, are errors naming them; without keyframes every image is its own.
+    #[test]
+    fn rig_from_the_prior() {
+        let a = CameraModel::pinhole(64, 48, 50.0, 50.0, 31.5, 23.5);
+        let b = CameraModel::pinhole(64, 48, 60.0, 60.0, 31.5, 23.5);
+        let mut frames = vec![
+            frame("k1/front", Some(1), Some("front"), a, 1.0),
+            frame("k1/left", Some(1), Some("left"), b, 1.3),
+            frame("k0/front", Some(0), Some("front"), a, 0.0),
+            frame("k0/left", Some(0), Some("left"), b, 0.3),
+        ];
+        // Keep the rig rigid: the left camera sits at the same offset from the front one at both instants.
+        let off = frames[2].prior.inverse() * frames[3].prior;
+        frames[1].prior = frames[0].prior * off;
+        let rig = rig_of(&frames).unwrap();
+        assert_eq!(rig.keyframes, 2);
+        assert_eq!(rig.keyframe_of, vec![1, 1, 0, 0]);
+        assert_eq!(rig.camera_of, vec![0, 1, 0, 1]);
+        for (i, f) in frames.iter().enumerate() {
+            let t = rig.prior_base[rig.keyframe_of[i]] * rig.extrinsics[rig.camera_of[i]];
+            assert!(
+                t.distance_to(&f.prior) < 1e-12 && t.angle_to(&f.prior) < 1e-9,
+                "{i}"
+            );
+        }
+        let mut bad = frames.clone();
+        bad[3].model = a;
+        let e = rig_of(&bad).err().unwrap().to_string();
+        assert!(e.contains("k0/left") && e.contains("intrinsics"), "{e}");
+        let lonely = vec![
+            frame("f", Some(0), Some("front"), a, 0.0),
+            frame("l", Some(1), Some("left"), b, 1.0),
+        ];
+        let e = rig_of(&lonely).err().unwrap().to_string();
+        assert!(e.contains("\"left\"") && e.contains("never"), "{e}");
+        let free: Vec<PoseFrame> = frames
+            .iter()
+            .map(|f| PoseFrame {
+                keyframe: None,
+                ..f.clone()
+            })
+            .collect();
+        let rig = rig_of(&free).unwrap();
+        assert_eq!(rig.keyframes, 4);
+        assert_eq!(rig.models.len(), 2);
+        assert!(rig.extrinsics.iter().all(|e| *e == Se3::IDENTITY));
+    }
+
+    /// Too few images, or images that match nothing (flat grey), end in an error that says so.
+    #[test]
+    fn nothing_to_adjust_is_an_error() {
+        let a = CameraModel::pinhole(64, 48, 50.0, 50.0, 31.5, 23.5);
+        let one = vec![frame("only", None, None, a, 0.0)];
+        let load = |_: usize| -> Result<GrayImage, String> {
+            Ok(GrayImage {
+                width: 64,
+                height: 48,
+                gray: vec![0.5; 64 * 48],
+                sky: None,
+            })
+        };
+        let quiet = |_: &str, _: usize, _: usize| {};
+        let e = refine_poses(&one, &load, &PosesOptions::default(), &quiet);
+        assert!(matches!(e, Err(PosesError::Empty(_))));
+        let two = vec![
+            frame("a", None, None, a, 0.0),
+            frame("b", None, None, a, 0.2),
+        ];
+        let e = refine_poses(&two, &load, &PosesOptions::default(), &quiet)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("no track"), "{e}");
+        // A loader failure names the image.
+        let fail =
+            |i: usize| -> Result<GrayImage, String> { Err(format!("image {i}: truncated PNG")) };
+        let e = refine_poses(&two, &fail, &PosesOptions::default(), &quiet)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("truncated"), "{e}");
+    }
+}
