@@ -84,19 +84,38 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
     if let Some(p) = a.peak_threshold {
         opts.sift.peak_threshold = p;
     }
-    let last = Mutex::new((String::new(), std::time::Instant::now()));
-    let clock = std::time::Instant::now();
+    // (stage, its start, last line printed)
+    let last = Mutex::new((
+        String::new(),
+        std::time::Instant::now(),
+        std::time::Instant::now(),
+    ));
     let quiet = a.quiet;
     let progress = move |stage: &str, done: usize, total: usize| {
         if quiet {
             return;
         }
         let mut l = last.lock().unwrap_or_else(|e| e.into_inner());
-        if l.0 != stage || l.1.elapsed().as_secs_f64() > 2.0 || done == total {
-            let t = clock.elapsed().as_secs_f64();
-            eprintln!("[poses] {stage} {done}/{total} ({t:.1} s)");
-            *l = (stage.to_string(), std::time::Instant::now());
+        if l.0 != stage {
+            *l = (
+                stage.to_string(),
+                std::time::Instant::now(),
+                std::time::Instant::now(),
+            );
+        } else if l.2.elapsed().as_secs_f64() < 2.0 && done != total {
+            return;
         }
+        l.2 = std::time::Instant::now();
+        let elapsed = l.1.elapsed().as_secs_f64();
+        let eta = if done > 0 {
+            format!(
+                ", ETA {:.0} s",
+                elapsed / done as f64 * total.saturating_sub(done) as f64
+            )
+        } else {
+            String::new()
+        };
+        eprintln!("[poses] {stage} {done}/{total} ({elapsed:.1} s{eta})");
     };
     let result = poses::refine_poses(&frames, &load, &opts, &progress)?;
     let rep = &result.report;

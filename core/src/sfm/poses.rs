@@ -454,7 +454,6 @@ pub fn refine_poses(
     let mut rmse_prior = f64::NAN;
     let nrounds = opts.rounds_px.len();
     for (round, &gate_px) in opts.rounds_px.iter().enumerate() {
-        progress("adjust", round, nrounds);
         let world_cam: Vec<Se3> = (0..n)
             .map(|i| problem.poses[rig.keyframe_of[i]] * problem.extrinsics[rig.camera_of[i]])
             .collect();
@@ -542,6 +541,7 @@ pub fn refine_poses(
         };
         let rep = ba::solve(&mut problem, &bopts)?;
         rounds.push(rep);
+        progress("adjust", round + 1, nrounds);
     }
     // Final inlier gate: drop observations beyond the last round's gate and recount.
     let last_gate = opts.rounds_px.last().copied().unwrap_or(4.0);
