@@ -166,7 +166,8 @@ enum Command {
     /// robust Sim(3) alignment, and RPE of consecutive frames; both given as transforms.json files (a
     /// synthetic dataset's transforms_prior.json against its transforms.json, say), frames matched by image.
     EvalPoses {
-        /// The estimated poses (transforms.json, or a dataset folder holding it).
+        /// The estimated poses: transforms.json, a dataset folder holding it, or a COLMAP text model
+        /// folder (cameras.txt, images.txt), its images matched to the exact frames by NAME.
         #[arg(long)]
         est: PathBuf,
         /// The exact poses (transforms.json, or a dataset folder holding it).
@@ -633,10 +634,18 @@ fn pairs(dataset: &Path, out: &Path, opts: silvr_core::sfm::pairs::PairOptions) 
     Ok(())
 }
 
-/// `silvr eval-poses`: ATE / rotation / RPE of one transforms.json against another.
+/// `silvr eval-poses`: ATE / rotation / RPE of a transforms.json, or of a COLMAP model folder, against
+/// an exact transforms.json.
 fn eval_poses(est: &Path, gt: &Path, out: Option<&Path>) -> Result<()> {
-    let e =
-        silvr_core::eval::poses::compare_transforms(&transforms_file(est), &transforms_file(gt))?;
+    use silvr_core::eval::poses;
+    let colmap = est.is_dir()
+        && !est.join("transforms.json").exists()
+        && (est.join("images.txt").exists() || est.join("images.bin").exists());
+    let e = if colmap {
+        poses::compare_colmap(est, &transforms_file(gt))?
+    } else {
+        poses::compare_transforms(&transforms_file(est), &transforms_file(gt))?
+    };
     eprintln!("{}", pose_line(&e));
     let json = serde_json::to_string_pretty(&e)?;
     match out {
@@ -649,7 +658,8 @@ fn eval_poses(est: &Path, gt: &Path, out: Option<&Path>) -> Result<()> {
 /// One line of pose errors for the terminal.
 fn pose_line(e: &silvr_core::eval::poses::PoseErrors) -> String {
     format!(
-        "{} frames ({} in the Sim(3) fit, scale {:.4}): ATE {:.3} m RMSE, {:.3} m median, {:.3} m max; rotation {:.2}° RMSE; RPE {:.3} m, {:.2}° per step",
+        "{}/{} frames registered ({} in the Sim(3) fit, scale {:.4}): ATE {:.3} m RMSE, {:.3} m median, {:.3} m max; rotation {:.2}° RMSE; RPE {:.3} m, {:.2}° per step",
+        e.registered,
         e.frames,
         e.inliers,
         e.scale,

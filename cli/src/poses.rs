@@ -312,6 +312,8 @@ fn colmap_model(frames: &[PoseFrame], result: &poses::PosesResult) -> Result<Col
             points2d: Vec::new(),
         });
     }
+    // Each frame's valid angle once (`project` would rescan the lens per observation).
+    let angles: Vec<f64> = frames.iter().map(|f| f.model.valid_angle()).collect();
     let mut points = Vec::new();
     for (pid, (x, track)) in result.points.iter().zip(&result.tracks).enumerate() {
         if track.len() < 2 {
@@ -331,7 +333,7 @@ fn colmap_model(frames: &[PoseFrame], result: &poses::PosesResult) -> Result<Col
                 point3d_id: Some(id),
             });
             let p = result.poses[i].inverse().transform_point(*x);
-            if let Some(r) = frames[i].model.project(p) {
+            if let Some(r) = frames[i].model.project_within(p, angles[i]) {
                 err += r.distance(uv);
             }
         }

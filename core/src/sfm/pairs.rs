@@ -49,16 +49,20 @@ pub struct Pair {
 /// Candidate pairs among `cams` (model and OpenCV-axes `T_world_cam` of each image), sorted by (i, j).
 pub fn candidate_pairs(cams: &[(CameraModel, Se3)], opts: &PairOptions) -> Vec<Pair> {
     use rayon::prelude::*;
+    // Each camera's valid angle, computed once: `project`/`unproject` would redo its scan per call, which
+    // was most of the time (8 s for the ci world's 60 images).
+    let angles: Vec<f64> = cams.par_iter().map(|(m, _)| m.valid_angle()).collect();
     // Each image's frustum samples in the world frame.
     let samples: Vec<Vec<DVec3>> = cams
         .par_iter()
-        .map(|(m, pose)| frustum_samples(m, pose, opts))
+        .zip(&angles)
+        .map(|((m, pose), &max_angle)| frustum_samples(m, pose, max_angle, opts))
         .collect();
     let cos_max = opts.max_angle_deg.to_radians().cos();
     (0..cams.len())
         .into_par_iter()
         .flat_map_iter(|i| {
-            let samples = &samples;
+            let (samples, angles) = (&samples, &angles);
             (i + 1..cams.len()).filter_map(move |j| {
                 let (a, b) = (&cams[i].1, &cams[j].1);
                 let distance_m = a.trans.distance(b.trans);
@@ -69,8 +73,11 @@ pub fn candidate_pairs(cams: &[(CameraModel, Se3)], opts: &PairOptions) -> Vec<P
                 if cos < cos_max {
                     return None;
                 }
-                let o =
-                    seen_fraction(&samples[i], &cams[j]).min(seen_fraction(&samples[j], &cams[i]));
+                let o = seen_fraction(&samples[i], &cams[j], angles[j]).min(seen_fraction(
+                    &samples[j],
+                    &cams[i],
+                    angles[i],
+                ));
                 (o >= opts.min_overlap).then(|| Pair {
                     i,
                     j,
@@ -83,8 +90,9 @@ pub fn candidate_pairs(cams: &[(CameraModel, Se3)], opts: &PairOptions) -> Vec<P
         .collect()
 }
 
-/// A grid of the image's pixels unprojected to each sample depth (along the ray), in the world frame.
-fn frustum_samples(m: &CameraModel, pose: &Se3, opts: &PairOptions) -> Vec<DVec3> {
+/// A grid of the image's pixels unprojected to each sample depth (along the ray), in the world frame;
+/// `max_angle` is the camera's [`CameraModel::valid_angle`].
+fn frustum_samples(m: &CameraModel, pose: &Se3, max_angle: f64, opts: &PairOptions) -> Vec<DVec3> {
     let g = opts.grid.max(2);
     let mut out = Vec::new();
     for gy in 0..g {
@@ -93,7 +101,9 @@ fn frustum_samples(m: &CameraModel, pose: &Se3, opts: &PairOptions) -> Vec<DVec3
                 (gx as f64 + 0.5) / g as f64 * m.width as f64 - 0.5,
                 (gy as f64 + 0.5) / g as f64 * m.height as f64 - 0.5,
             );
-            let Some(d) = m.unproject(px) else { continue };
+            let Some(d) = m.unproject_within(px, max_angle) else {
+                continue;
+            };
             let d = d.normalize();
             for &z in &opts.depths {
                 out.push(pose.transform_point(d * z));
@@ -103,8 +113,8 @@ fn frustum_samples(m: &CameraModel, pose: &Se3, opts: &PairOptions) -> Vec<DVec3
     out
 }
 
-/// Fraction of `points` (world) that project inside image `cam`.
-fn seen_fraction(points: &[DVec3], cam: &(CameraModel, Se3)) -> f64 {
+/// Fraction of `points` (world) that project inside image `cam` (`max_angle`: its valid angle).
+fn seen_fraction(points: &[DVec3], cam: &(CameraModel, Se3), max_angle: f64) -> f64 {
     if points.is_empty() {
         return 0.0;
     }
@@ -114,7 +124,7 @@ fn seen_fraction(points: &[DVec3], cam: &(CameraModel, Se3)) -> f64 {
     let seen = points
         .iter()
         .filter(|&&p| {
-            m.project(inv.transform_point(p))
+            m.project_within(inv.transform_point(p), max_angle)
                 .is_some_and(|uv| uv.x >= -0.5 && uv.y >= -0.5 && uv.x < w - 0.5 && uv.y < h - 0.5)
         })
         .count();
