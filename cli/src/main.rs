@@ -1122,10 +1122,11 @@ fn demo(
     // (not its initialisation): losses and gradients of one batch on both engines.
     let check = train::crosscheck(&dataset, &out.join("silvr").join("checkpoint.ckpt"), 1024)?;
     eprintln!("[demo] WGSL step vs CPU reference: {check}");
-    let max_diff = check["max_rel_grad_diff"].as_f64().unwrap_or(f64::INFINITY);
+    let max_diff = check["grad_rel_l2"].as_f64().unwrap_or(f64::INFINITY);
     let loss_diff = check["loss_rel_diff"].as_f64().unwrap_or(f64::INFINITY);
-    // Gradients within 1 % of each tensor's largest and the loss within 0.1 %: the CAS-atomic sums of
-    // the hash-grid gradients add in another order than the CPU's, nothing else differs.
+    // Every tensor's gradient within 1 % of the CPU's in the L2 norm and the loss within 0.1 %: the
+    // CAS-atomic sums add in another order than the CPU's, and a proposal interval overlap can flip on a
+    // rounding error (see `crosscheck`); nothing else differs.
     if max_diff > 1e-2 || loss_diff > 1e-3 {
         anyhow::bail!(
             "the WGSL training step disagrees with the CPU reference on {}: {check}",

@@ -444,7 +444,7 @@ fn profile(a: &BenchArgs, steps: u32) -> Result<()> {
 
 /// The WGSL engine's step against the CPU reference on one batch of this dataset, from a trained field's
 /// checkpoint (same parameters, same rays, the batch and schedule of the checkpoint's step): the loss of
-/// each, and per tensor the largest gradient difference relative to that tensor's largest gradient. Run
+/// each, and per tensor the gradient difference relative to the CPU gradient (L2 norm, and largest entry). Run
 /// by the demo so that the engine it ships is checked on the data it reports, after training.
 pub fn crosscheck(dataset: &Path, checkpoint: &Path, rays: usize) -> Result<serde_json::Value> {
     let gpu = pollster::block_on(Gpu::new(GpuOptions::default()))?;
@@ -470,19 +470,34 @@ pub fn crosscheck(dataset: &Path, checkpoint: &Path, rays: usize) -> Result<serd
     )?;
     let s_gpu = pollster::block_on(eng.step(&batch, &sch, &t.config.adam, 1e-2, 1, false))?;
     let g_gpu = pollster::block_on(eng.download_grads())?;
+    // Per tensor, the difference relative to the CPU gradient in the L2 norm (the gate) and elementwise
+    // relative to the tensor's largest entry (reported). The norm is the right gate: the CAS-atomic sums
+    // add in another order (relative error ~1e-6), and the proposal sampler's interval overlaps are
+    // piecewise constant in sample positions, so a position that moves by a rounding error can flip one
+    // overlap and change a few entries of the proposal grids' gradients by a visible fraction.
     let mut worst = 0.0f64;
+    let mut worst_elem = 0.0f64;
     let mut per_tensor = serde_json::Map::new();
+    let mut per_tensor_elem = serde_json::Map::new();
     for ((a, b), name) in g_gpu.iter().zip(&g_cpu).zip(&t.params.names) {
         let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-12) as f64;
-        let mut w = 0.0f64;
+        let (mut diff2, mut norm2, mut elem) = (0.0f64, 0.0f64, 0.0f64);
         for (x, y) in a.iter().zip(b) {
-            w = w.max(((x - y).abs() as f64 / scale).min(f64::MAX));
+            let d = (x - y) as f64;
+            diff2 += d * d;
+            norm2 += (*y as f64) * (*y as f64);
+            elem = elem.max(d.abs() / scale);
             if !x.is_finite() {
-                w = f64::INFINITY;
+                elem = f64::INFINITY;
+                diff2 = f64::INFINITY;
             }
         }
-        per_tensor.insert(name.clone(), w.into());
-        worst = worst.max(w);
+        let l2 = diff2.sqrt() / norm2.sqrt().max(1e-30);
+        let l2 = if l2.is_nan() { f64::INFINITY } else { l2 };
+        per_tensor.insert(name.clone(), l2.into());
+        per_tensor_elem.insert(name.clone(), elem.min(f64::MAX).into());
+        worst = worst.max(l2);
+        worst_elem = worst_elem.max(elem);
     }
     let loss_rel = (s_gpu.loss - s_cpu.loss).abs() / s_cpu.loss.abs().max(1e-12);
     Ok(serde_json::json!({
@@ -493,8 +508,10 @@ pub fn crosscheck(dataset: &Path, checkpoint: &Path, rays: usize) -> Result<serd
         "loss_cpu": s_cpu.loss,
         "loss_wgsl": s_gpu.loss,
         "loss_rel_diff": loss_rel,
-        "max_rel_grad_diff": worst,
-        "rel_grad_diff": per_tensor,
+        "grad_rel_l2": worst.min(f64::MAX),
+        "grad_rel_l2_per_tensor": per_tensor,
+        "grad_max_elem_rel": worst_elem.min(f64::MAX),
+        "grad_max_elem_rel_per_tensor": per_tensor_elem,
     }))
 }
 

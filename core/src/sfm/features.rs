@@ -421,13 +421,15 @@ fn blur(src: &Plane, sigma: f32) -> Plane {
         .for_each_init(Vec::new, |pad: &mut Vec<f32>, (out, row)| {
             pad.clear();
             pad.extend((-(r as isize)..(w + r) as isize).map(|i| row[reflect(i, w)]));
-            for (x, o) in out.iter_mut().enumerate() {
-                let c = x + r;
-                let mut acc = k[0] * pad[c];
-                for (j, kj) in k.iter().enumerate().skip(1) {
-                    acc += kj * (pad[c - j] + pad[c + j]);
+            // Tap by tap over the whole row (vectorises), like the vertical pass below.
+            for (o, p) in out.iter_mut().zip(&pad[r..r + w]) {
+                *o = k[0] * p;
+            }
+            for (j, kj) in k.iter().enumerate().skip(1) {
+                let (lo, hi) = (&pad[r - j..r - j + w], &pad[r + j..r + j + w]);
+                for ((o, a), b) in out.iter_mut().zip(lo).zip(hi) {
+                    *o += kj * (a + b);
                 }
-                *o = acc;
             }
         });
     let mut px = vec![0.0f32; w * h];
@@ -499,10 +501,28 @@ fn gradients(l: &Plane) -> Gradients {
                 let dx = 0.5 * (p[i + 1] - p[i - 1]);
                 let dy = 0.5 * (p[i + w] - p[i - w]);
                 m[x] = (dx * dx + dy * dy).sqrt();
-                o[x] = dy.atan2(dx);
+                o[x] = fast_atan2(dy, dx);
             }
         });
     Gradients { w, h, mag, ori }
+}
+
+/// `atan2(y, x)` within 1e-5 rad (a degree-11 odd polynomial on [0, 1] and the octant symmetries), about
+/// five times cheaper than libm's: orientations fall into 10° and 45° bins, so the last digits do not
+/// matter, and this call was a fifth of feature extraction. `(0, 0)` gives 0 like `atan2`.
+#[inline]
+fn fast_atan2(y: f32, x: f32) -> f32 {
+    use std::f32::consts::{FRAC_PI_2, PI};
+    // Branch-free (selects), so the gradient loop vectorises.
+    let (ax, ay) = (x.abs(), y.abs());
+    let (lo, hi) = (ax.min(ay), ax.max(ay));
+    let a = if hi > 0.0 { lo / hi } else { 0.0 };
+    let s = a * a;
+    let mut r = (((-0.013_480_47 * s + 0.057_477_314) * s - 0.121_239_07) * s + 0.195_635_925) * s;
+    r = ((r - 0.332_994_6) * s + 0.999_995_63) * a;
+    r = if ay > ax { FRAC_PI_2 - r } else { r };
+    r = if x < 0.0 { PI - r } else { r };
+    r.copysign(y)
 }
 
 /// Extrema of one octave's DoG stack, refined; layers and rows in parallel, in a deterministic order.
@@ -742,8 +762,20 @@ fn descriptor(
     let (xi, yi) = (e.x.round() as isize, e.y.round() as isize);
     let (w, h) = (g.w as isize, g.h as isize);
     let mut hist = [0.0f32; DESCRIPTOR_LEN];
+    // The window's weight depends on the distance only, so it separates into a row and a column factor
+    // (one exp per row and per column instead of per sample).
+    let k = inv_2var / (cell * cell);
+    let (x0, x1) = ((xi - radius).max(1), (xi + radius).min(w - 2));
+    let wx: Vec<f32> = (x0..=x1)
+        .map(|px| {
+            let rx = px as f32 - e.x;
+            (-rx * rx * k).exp()
+        })
+        .collect();
     for py in (yi - radius).max(1)..=(yi + radius).min(h - 2) {
-        for px in (xi - radius).max(1)..=(xi + radius).min(w - 2) {
+        let ry = py as f32 - e.y;
+        let wy = (-ry * ry * k).exp();
+        for (px, wxp) in (x0..=x1).zip(&wx) {
             let (rx, ry) = (px as f32 - e.x, py as f32 - e.y);
             // Position in the keypoint's frame, in cells; cell centres at -1.5, -0.5, 0.5, 1.5.
             let c_rot = rx * cos_t + ry * sin_t;
@@ -754,7 +786,7 @@ fn descriptor(
                 continue;
             }
             let i = py as usize * g.w + px as usize;
-            let mag = (-(c_rot * c_rot + r_rot * r_rot) * inv_2var).exp() * g.mag[i];
+            let mag = wy * wxp * g.mag[i];
             let obin = ((g.ori[i] - angle) * bins_per_rad).rem_euclid(DESC_BINS as f32);
             let (r0, c0, o0) = (rbin.floor(), cbin.floor(), obin.floor());
             let (fr, fc, fo) = (rbin - r0, cbin - c0, obin - o0);
@@ -1217,6 +1249,22 @@ mod tests {
             assert_eq!(capped.keypoints[..], f.keypoints[..50]);
             assert_eq!(capped.descriptors[..], f.descriptors[..50 * DESCRIPTOR_LEN]);
         }
+    }
+
+    #[test]
+    fn fast_atan2_is_within_1e5_rad_of_libm() {
+        let mut worst = 0.0f32;
+        for i in 0..3600 {
+            let t = i as f32 * (std::f32::consts::TAU / 3600.0) - std::f32::consts::PI + 1e-4;
+            for r in [1e-3f32, 0.7, 3.0] {
+                let (y, x) = (r * t.sin(), r * t.cos());
+                worst = worst.max((fast_atan2(y, x) - y.atan2(x)).abs());
+            }
+        }
+        assert!(worst < 1e-5, "{worst}");
+        assert_eq!(fast_atan2(0.0, 0.0), 0.0);
+        assert!((fast_atan2(0.0, -1.0) - std::f32::consts::PI).abs() < 1e-6);
+        assert!((fast_atan2(1.0, 0.0) - std::f32::consts::FRAC_PI_2).abs() < 1e-6);
     }
 
     #[test]

@@ -8,7 +8,7 @@
 //! bays along is off the line). The usual tests follow: nearest neighbour in descriptor space among the
 //! gated candidates, Lowe's ratio against the second nearest, a maximum distance, and the mutual check.
 
-use glam::{DMat3, DVec3};
+use glam::{DMat3, DVec3, Vec3};
 
 use crate::geometry::Se3;
 
@@ -67,34 +67,75 @@ impl EpipolarGate {
     }
 
     /// Whether unit ray `fb` (B's frame) can see the point on unit ray `fa` (A's frame), `ra` being
-    /// `rot_b_a * fa` (precomputed per feature of A). Two conditions: `fb` lies within the gate of the
-    /// epipolar plane spanned by the baseline and `ra`, and it points into the part of that plane the ray
-    /// of A sweeps beyond `min_depth` (between the direction of the nearest allowed point and `ra`
-    /// itself, the vanishing direction), so a match cannot place the point behind either camera. With no
-    /// baseline (two cameras of one rig instant sharing a centre) only the direction test applies.
-    #[inline]
+    /// `rot_b_a * fa`. Two conditions: `fb` lies within the gate of the epipolar plane spanned by the
+    /// baseline and `ra`, and it points into the part of that plane the ray of A sweeps beyond
+    /// `min_depth` (between the direction of the nearest allowed point and `ra` itself, the vanishing
+    /// direction), so a match cannot place the point behind either camera. With no baseline (two cameras
+    /// of one rig instant sharing a centre) only the direction test applies. The matcher asks this for
+    /// every pair of features, so it goes through [`GateRow`], computed once per feature of A.
     pub fn accepts(&self, ra: DVec3, fb: DVec3) -> bool {
-        let near = ra * self.min_depth + self.t_b_a;
+        self.row(ra).accepts(fb.as_vec3())
+    }
+
+    /// What the gate needs of one feature of A (`ra` = `rotate(fa)`): three dot products per candidate.
+    pub fn row(&self, ra: DVec3) -> GateRow {
+        let slack = self.sin_gate.asin();
         let n = self.t_b_a.cross(ra);
         let nn = n.length();
-        if nn > 1e-9 * self.t_b_a.length().max(1e-12) && self.t_b_a.length() > 1e-9 {
-            if (n.dot(fb) / nn).abs() > self.sin_gate {
-                return false;
-            }
-        } else {
-            return ra.angle_between(fb) <= self.sin_gate.asin();
+        let baseline = self.t_b_a.length();
+        if !(nn > 1e-9 * baseline.max(1e-12) && baseline > 1e-9) {
+            // Direction test only: the angle to `ra` within the gate.
+            let c = slack.cos() as f32;
+            return GateRow {
+                normal: Vec3::ZERO,
+                sin_gate: 1.0,
+                near: ra.as_vec3(),
+                ra: ra.as_vec3(),
+                cos_limit: c,
+            };
         }
-        // Within the plane: fb must lie in the wedge between `near` and `ra` (widened by the gate).
-        let near = near.normalize_or_zero();
-        let wedge = near.angle_between(ra);
-        let slack = self.sin_gate.asin();
-        near.angle_between(fb) <= wedge + slack && ra.angle_between(fb) <= wedge + slack
+        // Within the plane: fb must lie in the wedge between `near` and `ra`, widened by the gate;
+        // angle(u, fb) <= θ is u·fb >= cos θ for θ in [0, π].
+        let near = (ra * self.min_depth + self.t_b_a).normalize_or_zero();
+        let limit = near.angle_between(ra) + slack;
+        GateRow {
+            normal: (n / nn).as_vec3(),
+            sin_gate: self.sin_gate as f32,
+            near: near.as_vec3(),
+            ra: ra.as_vec3(),
+            cos_limit: if limit >= std::f64::consts::PI {
+                -2.0
+            } else {
+                limit.cos() as f32
+            },
+        }
     }
 
     /// `rot_b_a * fa`: the direction of A's ray in B's frame.
     #[inline]
     pub fn rotate(&self, fa: DVec3) -> DVec3 {
         self.rot_b_a * fa
+    }
+}
+
+/// The gate for one feature of A, in `f32`: the unit normal of its epipolar plane in B's frame and the
+/// cosine limits of the wedge its point can appear in.
+#[derive(Clone, Copy, Debug)]
+pub struct GateRow {
+    normal: Vec3,
+    sin_gate: f32,
+    near: Vec3,
+    ra: Vec3,
+    cos_limit: f32,
+}
+
+impl GateRow {
+    /// Whether unit ray `fb` (B's frame) passes (see [`EpipolarGate::accepts`]).
+    #[inline]
+    pub fn accepts(&self, fb: Vec3) -> bool {
+        self.normal.dot(fb).abs() <= self.sin_gate
+            && self.near.dot(fb) >= self.cos_limit
+            && self.ra.dot(fb) >= self.cos_limit
     }
 }
 
@@ -140,21 +181,48 @@ pub fn match_features(
             b.dot2 = dot;
         }
     };
+    // B's rays as three coordinate arrays (a ray that does not unproject never passes: NaN), so the
+    // plane test runs over all of B in one vectorised pass per feature of A; the wedge test and the
+    // descriptor product follow for the few percent that pass.
+    let mut bx = vec![f32::NAN; nb];
+    let mut by = vec![f32::NAN; nb];
+    let mut bz = vec![f32::NAN; nb];
+    for (j, r) in rays_b.iter().enumerate() {
+        if let Some(f) = r {
+            (bx[j], by[j], bz[j]) = (f.x as f32, f.y as f32, f.z as f32);
+        }
+    }
+    let mut plane = vec![0.0f32; nb];
     for (i, ra) in rays_a.iter().enumerate() {
         let Some(fa) = ra else { continue };
-        let ra = gate.map(|g| g.rotate(*fa));
         let da = &desc_a[i * D..(i + 1) * D];
-        for (j, rb) in rays_b.iter().enumerate() {
-            let Some(fb) = rb else { continue };
-            if let (Some(g), Some(ra)) = (gate, ra) {
-                if !g.accepts(ra, *fb) {
-                    continue;
-                }
-            }
+        let mut consider = |j: usize| {
             let db = &desc_b[j * D..(j + 1) * D];
             let dot = dot128(da, db);
             push(&mut best_a[i], dot, j as u32);
             push(&mut best_b[j], dot, i as u32);
+        };
+        match gate {
+            Some(g) => {
+                let row = g.row(g.rotate(*fa));
+                let n = row.normal;
+                for (((p, x), y), z) in plane.iter_mut().zip(&bx).zip(&by).zip(&bz) {
+                    *p = (n.x * x + n.y * y + n.z * z).abs();
+                }
+                for (j, &p) in plane.iter().enumerate() {
+                    // `!(p > gate)` would let NaN through; `p <= gate` does not.
+                    if p <= row.sin_gate && row.accepts(Vec3::new(bx[j], by[j], bz[j])) {
+                        consider(j);
+                    }
+                }
+            }
+            None => {
+                for (j, x) in bx.iter().enumerate() {
+                    if !x.is_nan() {
+                        consider(j);
+                    }
+                }
+            }
         }
     }
     let dist = |dot: f32| (2.0 - 2.0 * dot).max(0.0).sqrt();

@@ -19,6 +19,7 @@
 use std::collections::BTreeMap;
 
 use glam::{DVec2, DVec3};
+use rayon::prelude::*;
 use serde::Serialize;
 
 use super::ba::{self, AbsolutePrior, BaOptions, BaProblem, BaReport, Observation, RelativePrior};
@@ -298,19 +299,25 @@ fn rig_of(frames: &[PoseFrame]) -> Result<Rig, PosesError> {
 pub fn lens_mask(model: &CameraModel) -> Vec<bool> {
     let (w, h) = (model.width as usize, model.height as usize);
     let amax = model.valid_angle();
+    // Whether each pixel unprojects, on the image grown by 2 px each side (one Newton solve per pixel),
+    // then the five lookups per pixel.
+    const M: usize = 2;
+    let (gw, gh) = (w + 2 * M, h + 2 * M);
+    let valid: Vec<bool> = (0..gw * gh)
+        .into_par_iter()
+        .map(|k| {
+            let p = DVec2::new((k % gw) as f64 - M as f64, (k / gw) as f64 - M as f64);
+            model.unproject_within(p, amax).is_some()
+        })
+        .collect();
     let mut mask = vec![false; w * h];
     for y in 0..h {
         for x in 0..w {
-            let p = DVec2::new(x as f64, y as f64);
-            mask[y * w + x] = [
-                DVec2::ZERO,
-                DVec2::new(2.0, 0.0),
-                DVec2::new(-2.0, 0.0),
-                DVec2::new(0.0, 2.0),
-                DVec2::new(0.0, -2.0),
-            ]
-            .iter()
-            .all(|d| model.unproject_within(p + *d, amax).is_some());
+            let (gx, gy) = (x + M, y + M);
+            mask[y * w + x] = [(0, 0), (M, 0), (0, M)]
+                .iter()
+                .flat_map(|&(dx, dy)| [(gx + dx, gy + dy), (gx - dx, gy - dy)])
+                .all(|(u, v)| valid[v * gw + u]);
         }
     }
     mask
@@ -323,7 +330,6 @@ pub fn refine_poses(
     opts: &PosesOptions,
     progress: ProgressFn,
 ) -> Result<PosesResult, PosesError> {
-    use rayon::prelude::*;
     let clock = web_time::Instant::now();
     let mut stages: Vec<StageTime> = Vec::new();
     let mut lap = {
