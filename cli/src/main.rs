@@ -139,9 +139,34 @@ enum Command {
         /// than COLMAP's 0.0067 (tuned for photographs) so small or low-contrast images keep enough.
         #[arg(long)]
         peak_threshold: Option<f32>,
+        /// Find features on images downscaled by this integer factor (block means; large photographs:
+        /// COLMAP caps them at 3200 px). Poses and the COLMAP model stay at full resolution.
+        #[arg(long, default_value_t = 1)]
+        downscale: u32,
         /// No progress lines.
         #[arg(long)]
         quiet: bool,
+    },
+    /// Perturb the poses of a transforms.json (noise per image, optional drift along the listed order),
+    /// to test pose refinement on a capture whose poses are good: writes OUT/transforms.json pointing
+    /// back at the dataset's files.
+    PerturbPoses {
+        /// Dataset folder (its transforms.json) or a transforms.json.
+        dataset: PathBuf,
+        /// Output folder (must not exist).
+        #[arg(long)]
+        out: PathBuf,
+        /// Translation noise per image (scene units, 1 σ per axis).
+        #[arg(long, default_value_t = 0.02)]
+        noise: f64,
+        /// Rotation noise per image (degrees, 1 σ per axis).
+        #[arg(long, default_value_t = 0.2)]
+        noise_deg: f64,
+        /// Drift along the frames' order: scale error and random walk, as a fraction of each step.
+        #[arg(long, default_value_t = 0.0)]
+        drift: f64,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
     },
     /// Candidate image pairs to match, from the poses of a transforms.json (a SLAM prior: centres near,
     /// optical axes within an angle, view frusta overlapping): one `image1 image2` line per pair, the
@@ -318,6 +343,11 @@ enum Command {
         /// where the only adapter is a software one.
         #[arg(long, default_value = "auto")]
         backend: String,
+        /// Poses the fields train on: `refined` (the poses stage's output, like a user's data: the
+        /// default), `prior` (the SLAM-like prior as it is) or `exact` (the generator's). Geometry is
+        /// scored after the Sim(3) that aligns the trained-on poses with the exact ones.
+        #[arg(long, default_value = "refined")]
+        poses: String,
     },
     /// Serve the built studio and a folder of reconstructions over HTTP, and print the link that opens
     /// the folder's PLY files in the studio.
@@ -378,6 +408,7 @@ fn uncertainty_cmd(c: UncertaintyCmd) -> Result<()> {
         seed: c.seed,
         ..Default::default()
     };
+    let trained_on = c.dataset.clone();
     let summary = uncertainty::run(&uncertainty::UncertaintyArgs {
         model_dir: c.model.clone(),
         dataset: c.dataset,
@@ -387,7 +418,13 @@ fn uncertainty_cmd(c: UncertaintyCmd) -> Result<()> {
         profile: c.profile,
     })?;
     if let Some(gt) = c.gt {
-        let v = uncertainty::evaluate(&c.model, &gt, &summary)?;
+        let v = uncertainty::evaluate(
+            &c.model,
+            &gt,
+            trained_on.as_deref().unwrap_or(&gt),
+            &GeometryOptions::default(),
+            &summary,
+        )?;
         println!("{}", serde_json::to_string_pretty(&v)?);
     }
     Ok(())
@@ -424,6 +461,7 @@ fn main() {
             refine_extrinsics,
             max_features,
             peak_threshold,
+            downscale,
             quiet,
         } => poses::run(&poses::PosesArgs {
             dataset,
@@ -432,9 +470,18 @@ fn main() {
             refine_extrinsics,
             max_features,
             peak_threshold,
+            downscale,
             quiet,
         })
         .map(|_| ()),
+        Command::PerturbPoses {
+            dataset,
+            out,
+            noise,
+            noise_deg,
+            drift,
+            seed,
+        } => poses::perturb(&dataset, &out, noise, noise_deg, drift, seed),
         Command::EvalPoses { est, gt, out } => eval_poses(&est, &gt, out.as_deref()),
         Command::Pairs {
             dataset,
@@ -530,6 +577,7 @@ fn main() {
             reuse_dataset,
             uncertainty_batches,
             backend,
+            poses,
         } => demo(
             preset.as_deref(),
             seed,
@@ -541,6 +589,7 @@ fn main() {
                 downscale,
                 uncertainty_batches,
                 backend,
+                poses,
             },
             reuse_dataset,
         ),
@@ -914,6 +963,8 @@ struct DemoTraining {
     downscale: u32,
     uncertainty_batches: Option<usize>,
     backend: String,
+    /// `refined`, `prior` or `exact`.
+    poses: String,
 }
 
 /// Whether `dataset` was generated from exactly `preset` (its manifest records the preset).
@@ -939,6 +990,12 @@ fn demo(
     overrides: &DemoTraining,
     reuse_dataset: bool,
 ) -> Result<()> {
+    if !["refined", "prior", "exact"].contains(&overrides.poses.as_str()) {
+        anyhow::bail!(
+            "--poses {}: expected refined, prior or exact",
+            overrides.poses
+        );
+    }
     let total = Instant::now();
     let gpu = open_gpu()?;
     let name = preset.unwrap_or(if gpu.report().software {
@@ -968,7 +1025,7 @@ fn demo(
     // exact poses (training still uses the exact ones; see the report's `trained_on`).
     let t = Instant::now();
     let prior_file = dataset.join("transforms_prior.json");
-    let poses_block = if prior_file.is_file() {
+    let mut poses_block = if prior_file.is_file() {
         let dir = out.join("poses");
         if dir.exists() {
             std::fs::remove_dir_all(&dir).with_context(|| format!("clearing {}", dir.display()))?;
@@ -980,6 +1037,7 @@ fn demo(
             refine_extrinsics: false,
             max_features: 4096,
             peak_threshold: None,
+            downscale: 1,
             quiet: true,
         })?;
         let e = &r["errors"];
@@ -1008,16 +1066,49 @@ fn demo(
             "rmse_px": p["rmse_px"],
             "rmse_prior_px": p["rmse_prior_px"],
             "seconds": t.elapsed().as_secs_f64(),
-            // Training uses the exact poses until training on the refined ones is measured against
-            // them (the pose ablation of issue 18).
-            "trained_on": "exact",
+            "trained_on": overrides.poses,
         })
     } else {
         // A dataset generated before the prior existed (reused with --reuse-dataset).
-        eprintln!("[demo] no prior poses ({} missing)", prior_file.display());
+        if overrides.poses != "exact" {
+            anyhow::bail!(
+                "{} has no transforms_prior.json (generated before the SLAM-like prior existed): \
+                 generate the world again (drop --reuse-dataset) or pass --poses exact",
+                dataset.display()
+            );
+        }
         serde_json::json!({ "trained_on": "exact" })
     };
     let poses_s = t.elapsed().as_secs_f64();
+    // What the fields train on, and the Sim(3) that maps their frame onto the exact one for scoring
+    // (the poses stage aligns its output to the prior, so it inherits the prior's scale drift).
+    let (train_on, alignment) = match overrides.poses.as_str() {
+        "exact" => (dataset.clone(), None),
+        which => {
+            let file = if which == "refined" {
+                out.join("poses").join("transforms.json")
+            } else {
+                dataset.join("transforms_prior.json")
+            };
+            let a: silvr_core::eval::poses::PoseErrors =
+                serde_json::from_value(poses_block[which].clone())
+                    .with_context(|| format!("the poses stage scored no {which} poses"))?;
+            (file, Some(a.alignment))
+        }
+    };
+    if let Some(a) = &alignment {
+        eprintln!(
+            "[demo] training on the {} poses ({}); geometry scored after their Sim(3) to the exact ones (scale {:.4})",
+            overrides.poses,
+            train_on.display(),
+            a.scale
+        );
+        poses_block["alignment"] = serde_json::to_value(a)?;
+    }
+    let geo = GeometryOptions {
+        reconstruction_to_gt: alignment.map(|a| a.to_mat4()),
+        ..GeometryOptions::default()
+    };
 
     // Lidar-only baseline: the deskewed sweeps in the world frame.
     let t = Instant::now();
@@ -1049,7 +1140,7 @@ fn demo(
         let t = Instant::now();
         let dir = out.join(key);
         let summary = train::run(&train::TrainArgs {
-            dataset: dataset.clone(),
+            dataset: train_on.clone(),
             mode,
             steps,
             rays,
@@ -1077,7 +1168,7 @@ fn demo(
             .points
             .clone()
             .context("training exported no points")?;
-        let ev = eval::evaluate_files_full(&points, &dataset, &GeometryOptions::default())?;
+        let ev = eval::evaluate_files_full(&points, &dataset, &geo)?;
         write_error_cloud(&ev, &dir.join("error.ply"))?;
         let mut v = report_json(&ev.report);
         let psnr = train::mean(summary.views.iter().map(|v| v.psnr));
@@ -1089,7 +1180,7 @@ fn demo(
         }
         methods[key] = v;
         if let Some(u) = &summary.uncertainty {
-            let block = uncertainty::evaluate(&dir, &dataset, u)?;
+            let block = uncertainty::evaluate(&dir, &dataset, &train_on, &geo, u)?;
             eprintln!(
                 "[demo] uncertainty ({:.1} s): AUSE colour {:.3}, depth {:.3}, combined {:.3} (random {:.3})",
                 u.seconds,
@@ -1120,7 +1211,7 @@ fn demo(
     }
     // The WGSL training step against the CPU reference on this dataset, from the trained SiLVR field
     // (not its initialisation): losses and gradients of one batch on both engines.
-    let check = train::crosscheck(&dataset, &out.join("silvr").join("checkpoint.ckpt"), 1024)?;
+    let check = train::crosscheck(&train_on, &out.join("silvr").join("checkpoint.ckpt"), 1024)?;
     eprintln!("[demo] WGSL step vs CPU reference: {check}");
     let max_diff = check["grad_rel_l2"].as_f64().unwrap_or(f64::INFINITY);
     let loss_diff = check["loss_rel_diff"].as_f64().unwrap_or(f64::INFINITY);

@@ -25,6 +25,8 @@ pub struct PosesArgs {
     pub max_features: usize,
     /// SIFT's DoG peak threshold, when not the stage's default.
     pub peak_threshold: Option<f32>,
+    /// Features found on images downscaled by this factor (1: full size).
+    pub downscale: u32,
     pub quiet: bool,
 }
 
@@ -34,28 +36,76 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
     let text =
         std::fs::read_to_string(&json).with_context(|| format!("reading {}", json.display()))?;
     let (ns, _, _) = dataset::parse_frames(&text, &json)?;
-    let frames: Vec<PoseFrame> = ns
+    let f = a.downscale.max(1);
+    // Frames whose image is missing are left out and named, as the training loader does (captures
+    // often list more images than they ship); they keep their prior pose in the output.
+    let (present, missing): (Vec<usize>, Vec<usize>) =
+        (0..ns.len()).partition(|&i| root_dir.join(&ns[i].file_path).is_file());
+    let skipped: Vec<String> = missing
         .iter()
-        .map(|f| {
-            let (model, prior) = f.camera(&json)?;
+        .map(|&i| format!("{}: image file missing", ns[i].file_path))
+        .collect();
+    if !skipped.is_empty() && !a.quiet {
+        eprintln!(
+            "[poses] left out {} of {} frames whose image file is missing: {}",
+            skipped.len(),
+            ns.len(),
+            missing
+                .iter()
+                .map(|&i| ns[i].file_path.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    let mut full_models = Vec::with_capacity(present.len());
+    let frames: Vec<PoseFrame> = present
+        .iter()
+        .map(|&i| {
+            let fr = &ns[i];
+            let (model, prior) = fr.camera(&json)?;
+            full_models.push(model);
             Ok(PoseFrame {
-                name: f.file_path.clone(),
-                model,
+                name: fr.file_path.clone(),
+                model: model.downscaled(f),
                 prior,
-                keyframe: f.keyframe,
-                camera: f.camera.clone(),
+                keyframe: fr.keyframe,
+                camera: fr.camera.clone(),
             })
         })
         .collect::<Result<_, dataset::DatasetError>>()?;
     if a.out.exists() {
         anyhow::bail!("{} exists; choose a new folder", a.out.display());
     }
-    let load = |i: usize| -> Result<GrayImage, String> {
-        let f = &ns[i];
-        let p = root_dir.join(&f.file_path);
+    if f > 1 {
+        if let Some(m) = frames
+            .iter()
+            .find(|fr| fr.model.width < 16 || fr.model.height < 16)
+        {
+            anyhow::bail!(
+                "{}: --downscale {f} leaves {} at {}x{} pixels; too small to find features",
+                json.display(),
+                m.name,
+                m.model.width,
+                m.model.height
+            );
+        }
+    }
+    let load = |k: usize| -> Result<GrayImage, String> {
+        let fr = &ns[present[k]];
+        let p = root_dir.join(&fr.file_path);
         let (w, h, rgb) = dataset::read_rgb(&p).map_err(|e| e.to_string())?;
+        let full = &full_models[k];
+        if (w, h) != (full.width, full.height) {
+            return Err(format!(
+                "{}: image is {w}x{h}, its camera {}x{}",
+                p.display(),
+                full.width,
+                full.height
+            ));
+        }
+        let rgb = silvr_core::train::data::resize_rgb(rgb, w, h, f);
         let gray = silvr_core::sfm::features::gray_from_rgb(&rgb);
-        let sky = match &f.sky_mask_path {
+        let sky = match &fr.sky_mask_path {
             Some(s) => {
                 let p = root_dir.join(s);
                 let (sw, sh, m) = dataset::read_gray8(&p).map_err(|e| e.to_string())?;
@@ -65,13 +115,14 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
                         p.display()
                     ));
                 }
+                let m = silvr_core::train::data::resize_nearest(m, w, h, f);
                 Some(m.iter().map(|&v| v > 127).collect())
             }
             None => None,
         };
         Ok(GrayImage {
-            width: w,
-            height: h,
+            width: w / f,
+            height: h / f,
             gray,
             sky,
         })
@@ -124,27 +175,25 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
     let errors = match &a.gt {
         Some(gt) => {
             let gt_json = crate::transforms_file(gt);
-            let (gt_frames, _, _) = dataset::read_frames(&gt_json)?;
-            let by_name: BTreeMap<&str, &dataset::NsFrame> = gt_frames
-                .iter()
-                .map(|f| (f.file_path.as_str(), f))
-                .collect();
-            let (mut prior, mut refined, mut exact) = (Vec::new(), Vec::new(), Vec::new());
-            for (i, f) in frames.iter().enumerate() {
-                let g = by_name.get(f.name.as_str()).with_context(|| {
-                    format!(
-                        "{}: no frame {} in {}",
-                        json.display(),
-                        f.name,
-                        gt_json.display()
-                    )
-                })?;
-                exact.push(g.camera(&gt_json)?.1);
-                prior.push(f.prior);
-                refined.push(result.poses[i]);
-            }
-            let p = silvr_core::eval::poses::pose_errors(&prior, &exact)?;
-            let r = silvr_core::eval::poses::pose_errors(&refined, &exact)?;
+            // Frames matched by the file they name (the exact file may spell paths from elsewhere).
+            let named = |poses: &[silvr_core::geometry::Se3]| {
+                frames
+                    .iter()
+                    .zip(poses)
+                    .map(|(f, p)| (f.name.clone(), *p))
+                    .collect::<Vec<_>>()
+            };
+            let prior: Vec<_> = frames.iter().map(|f| f.prior).collect();
+            let score = |poses: &[silvr_core::geometry::Se3]| {
+                silvr_core::eval::poses::compare_named(
+                    named(poses),
+                    Some(&root_dir),
+                    &json.display().to_string(),
+                    &gt_json,
+                )
+            };
+            let p = score(&prior)?;
+            let r = score(&result.poses)?;
             Some(
                 serde_json::json!({ "gt": gt_json.display().to_string(), "prior": p, "refined": r }),
             )
@@ -152,75 +201,20 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
         None => None,
     };
 
-    // Staging folder, renamed into place when complete.
-    let parent = a
-        .out
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
-    let tmp = parent.join(format!(
-        ".{}.partial",
-        a.out
-            .file_name()
-            .map(|n| n.to_string_lossy())
-            .unwrap_or_default()
-    ));
-    let _ = std::fs::remove_dir_all(&tmp);
-    std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
-    let abs = |p: &Path| -> Result<PathBuf> {
-        std::path::absolute(p).with_context(|| format!("resolving {}", p.display()))
-    };
-    let rel = crate::submaps::relative_path(&abs(&root_dir)?, &abs(&a.out)?);
-    let prefix = {
-        let s = rel.to_string_lossy().replace('\\', "/");
-        if s.is_empty() {
-            String::new()
-        } else {
-            format!("{s}/")
-        }
-    };
+    let tmp = staging(&a.out)?;
+    let prefix = prefix_to(&root_dir, &a.out)?;
     // transforms.json: the input's, poses replaced, paths pointing back at the dataset.
-    let mut root: Value = serde_json::from_str(&text)?;
-    if let Some(list) = root.get_mut("frames").and_then(Value::as_array_mut) {
-        for (i, f) in list.iter_mut().enumerate() {
-            let Some(o) = f.as_object_mut() else { continue };
-            let m = silvr_core::camera::opencv_to_opengl_c2w(result.poses[i].to_mat4());
-            let rows: Vec<Value> = [m.row(0), m.row(1), m.row(2), m.row(3)]
-                .iter()
-                .map(|r| Value::from(r.to_array().to_vec()))
-                .collect();
-            o.insert("transform_matrix".into(), Value::from(rows));
-            for k in [
-                "file_path",
-                "depth_file_path",
-                "normal_file_path",
-                "sky_mask_path",
-            ] {
-                if let Some(p) = o.get(k).and_then(Value::as_str).map(String::from) {
-                    // Absolute paths already reach their file from anywhere.
-                    if !Path::new(&p).is_absolute() {
-                        o.insert(k.into(), Value::from(format!("{prefix}{p}")));
-                    }
-                }
-            }
-        }
+    let mut by_frame: Vec<Option<silvr_core::geometry::Se3>> = vec![None; ns.len()];
+    for (k, &i) in present.iter().enumerate() {
+        by_frame[i] = Some(result.poses[k]);
     }
-    for list in ["train_filenames", "val_filenames"] {
-        if let Some(arr) = root.get_mut(list).and_then(Value::as_array_mut) {
-            for v in arr.iter_mut() {
-                if let Some(s) = v.as_str().filter(|s| !Path::new(s).is_absolute()) {
-                    *v = Value::from(format!("{prefix}{s}"));
-                }
-            }
-        }
-    }
+    let root = rewrite_transforms(&text, &by_frame, &prefix)?;
     dataset::write_atomic(
         &tmp.join("transforms.json"),
         serde_json::to_string_pretty(&root)?.as_bytes(),
     )?;
     // The COLMAP text model (cameras, posed images with their observed keypoints, points).
-    let model = colmap_model(&frames, &result)?;
+    let model = colmap_model(&frames, &full_models, f, &result)?;
     let cdir = tmp.join("colmap");
     std::fs::create_dir_all(&cdir)?;
     colmap::write_model(&cdir, &model)?;
@@ -228,6 +222,8 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
         "dataset": json.display().to_string(),
         "poses": rep,
         "errors": errors,
+        "downscale": f,
+        "skipped": skipped,
     });
     dataset::write_atomic(
         &tmp.join("report.json"),
@@ -289,18 +285,26 @@ fn summarise(report: &Value) {
 
 /// The refined model in COLMAP's terms: one camera per distinct intrinsics, every frame as an image
 /// with its keypoints that observe a point.
-fn colmap_model(frames: &[PoseFrame], result: &poses::PosesResult) -> Result<ColmapModel> {
+/// The COLMAP model at full resolution: `full[i]` is frame i's camera before the `f`-fold downscale its
+/// features were found at, so keypoints and errors are scaled back to full-size pixels.
+fn colmap_model(
+    frames: &[PoseFrame],
+    full: &[CameraModel],
+    f: u32,
+    result: &poses::PosesResult,
+) -> Result<ColmapModel> {
+    let up = |uv: glam::DVec2| (uv + 0.5) * f as f64 - 0.5;
     let mut cameras: BTreeMap<u32, CameraModel> = BTreeMap::new();
     let mut images: Vec<ColmapImage> = Vec::with_capacity(frames.len());
     for (i, f) in frames.iter().enumerate() {
         if f.name.chars().any(char::is_whitespace) {
             anyhow::bail!("{}: COLMAP names cannot hold spaces", f.name);
         }
-        let camera_id = match cameras.iter().find(|(_, m)| **m == f.model) {
+        let camera_id = match cameras.iter().find(|(_, m)| **m == full[i]) {
             Some((id, _)) => *id,
             None => {
                 let id = cameras.len() as u32 + 1;
-                cameras.insert(id, f.model);
+                cameras.insert(id, full[i]);
                 id
             }
         };
@@ -329,12 +333,12 @@ fn colmap_model(frames: &[PoseFrame], result: &poses::PosesResult) -> Result<Col
                 point2d_idx: img.points2d.len() as u32,
             });
             img.points2d.push(ColmapPoint2D {
-                xy: uv,
+                xy: up(uv),
                 point3d_id: Some(id),
             });
             let p = result.poses[i].inverse().transform_point(*x);
             if let Some(r) = frames[i].model.project_within(p, angles[i]) {
-                err += r.distance(uv);
+                err += r.distance(uv) * f as f64;
             }
         }
         points.push(ColmapPoint {
@@ -350,4 +354,157 @@ fn colmap_model(frames: &[PoseFrame], result: &poses::PosesResult) -> Result<Col
         images,
         points,
     })
+}
+
+/// `OUT`'s staging folder (`.OUT.partial` beside it, emptied): written in full, then renamed to `OUT`.
+fn staging(out: &Path) -> Result<PathBuf> {
+    let parent = out
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+    let tmp = parent.join(format!(
+        ".{}.partial",
+        out.file_name()
+            .map(|n| n.to_string_lossy())
+            .unwrap_or_default()
+    ));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+    Ok(tmp)
+}
+
+/// The path from folder `out` back to `root_dir`, as a prefix for relative paths (`""` or `"a/b/"`).
+fn prefix_to(root_dir: &Path, out: &Path) -> Result<String> {
+    let abs = |p: &Path| -> Result<PathBuf> {
+        std::path::absolute(p).with_context(|| format!("resolving {}", p.display()))
+    };
+    let rel = crate::submaps::relative_path(&abs(root_dir)?, &abs(out)?);
+    let s = rel.to_string_lossy().replace('\\', "/");
+    Ok(if s.is_empty() { s } else { format!("{s}/") })
+}
+
+/// A transforms.json's text with frame i's pose replaced by `poses[i]` (kept where `None`) and every
+/// relative file path prefixed (so the file works from another folder); everything else as it was.
+fn rewrite_transforms(
+    text: &str,
+    poses: &[Option<silvr_core::geometry::Se3>],
+    prefix: &str,
+) -> Result<Value> {
+    let mut root: Value = serde_json::from_str(text)?;
+    if let Some(list) = root.get_mut("frames").and_then(Value::as_array_mut) {
+        for (i, f) in list.iter_mut().enumerate() {
+            let Some(o) = f.as_object_mut() else { continue };
+            if let Some(pose) = poses.get(i).copied().flatten() {
+                let m = silvr_core::camera::opencv_to_opengl_c2w(pose.to_mat4());
+                let rows: Vec<Value> = [m.row(0), m.row(1), m.row(2), m.row(3)]
+                    .iter()
+                    .map(|r| Value::from(r.to_array().to_vec()))
+                    .collect();
+                o.insert("transform_matrix".into(), Value::from(rows));
+            }
+            for k in [
+                "file_path",
+                "depth_file_path",
+                "normal_file_path",
+                "sky_mask_path",
+            ] {
+                if let Some(p) = o.get(k).and_then(Value::as_str).map(String::from) {
+                    // Absolute paths already reach their file from anywhere.
+                    if !Path::new(&p).is_absolute() {
+                        o.insert(k.into(), Value::from(format!("{prefix}{p}")));
+                    }
+                }
+            }
+        }
+    }
+    for list in ["train_filenames", "val_filenames"] {
+        if let Some(arr) = root.get_mut(list).and_then(Value::as_array_mut) {
+            for v in arr.iter_mut() {
+                if let Some(s) = v.as_str().filter(|s| !Path::new(s).is_absolute()) {
+                    *v = Value::from(format!("{prefix}{s}"));
+                }
+            }
+        }
+    }
+    Ok(root)
+}
+
+/// `silvr perturb-poses`: the frames' poses with per-image (per-keyframe on a rig) noise and optional
+/// drift along the listed order (the first exact), the synthetic world's prior model ([`prior_trajectory`]) applied to a
+/// capture, written as OUT/transforms.json pointing back at the dataset's files.
+///
+/// [`prior_trajectory`]: silvr_core::synthetic::prior::prior_trajectory
+pub fn perturb(
+    dataset: &Path,
+    out: &Path,
+    noise: f64,
+    noise_deg: f64,
+    drift: f64,
+    seed: u64,
+) -> Result<()> {
+    for (what, v) in [
+        ("--noise", noise),
+        ("--noise-deg", noise_deg),
+        ("--drift", drift),
+    ] {
+        if !(v.is_finite() && v >= 0.0) {
+            anyhow::bail!("{what} must be a finite number ≥ 0, not {v}");
+        }
+    }
+    let json = crate::transforms_file(dataset);
+    let root_dir = json.parent().unwrap_or(Path::new(".")).to_path_buf();
+    let text =
+        std::fs::read_to_string(&json).with_context(|| format!("reading {}", json.display()))?;
+    let (ns, _, _) = dataset::parse_frames(&text, &json)?;
+    if out.exists() {
+        anyhow::bail!("{} exists; choose a new folder", out.display());
+    }
+    let exact: Vec<silvr_core::geometry::Se3> = ns
+        .iter()
+        .map(|f| f.camera(&json).map(|(_, p)| p))
+        .collect::<Result<_, _>>()?;
+    let params = silvr_core::synthetic::prior::PriorParams {
+        scale_error: drift,
+        walk_per_m: drift,
+        noise_m: noise,
+        noise_deg,
+        ..silvr_core::synthetic::prior::PriorParams::exact()
+    };
+    // A rig moves as one: frames of one keyframe (the `keyframe` field) share their keyframe's error,
+    // as in a SLAM trajectory; frames without one are perturbed each on its own.
+    let mut groups: Vec<(Option<u64>, Vec<usize>)> = Vec::new();
+    for (i, f) in ns.iter().enumerate() {
+        let k = f.keyframe.map(|k| k as u64);
+        match groups.iter_mut().find(|(g, _)| k.is_some() && *g == k) {
+            Some((_, members)) => members.push(i),
+            None => groups.push((k, vec![i])),
+        }
+    }
+    let bases: Vec<silvr_core::geometry::Se3> = groups.iter().map(|(_, m)| exact[m[0]]).collect();
+    let (moved_bases, _) = silvr_core::synthetic::prior::prior_trajectory(&bases, &params, seed);
+    let mut moved = exact.clone();
+    for ((_, members), (b, nb)) in groups.iter().zip(bases.iter().zip(&moved_bases)) {
+        let delta = *nb * b.inverse();
+        for &i in members {
+            moved[i] = delta * exact[i];
+        }
+    }
+    let tmp = staging(out)?;
+    let prefix = prefix_to(&root_dir, out)?;
+    let moved: Vec<_> = moved.into_iter().map(Some).collect();
+    let root = rewrite_transforms(&text, &moved, &prefix)?;
+    dataset::write_atomic(
+        &tmp.join("transforms.json"),
+        serde_json::to_string_pretty(&root)?.as_bytes(),
+    )?;
+    std::fs::rename(&tmp, out)
+        .with_context(|| format!("renaming {} to {}", tmp.display(), out.display()))?;
+    eprintln!(
+        "[perturb] {} frames of {}: noise {noise} per axis, {noise_deg}° per axis, drift {drift}, seed {seed} → {}",
+        ns.len(),
+        json.display(),
+        out.join("transforms.json").display()
+    );
+    Ok(())
 }

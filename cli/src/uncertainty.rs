@@ -170,18 +170,22 @@ pub fn annotate(
 }
 
 /// Sparsification curves, AUSE (per modality, and a random ordering's), plots and the filtered cloud's
-/// geometry, against the ground truth in `gt_dir`. Writes `sparsification.json` and PNG plots into
-/// `dir`; returns the report's `uncertainty` block.
+/// geometry, against the ground truth in `gt_dir`, the clouds mapped into its frame by `opts`
+/// (`reconstruction_to_gt`: the field trained on estimated poses). `trained_on` is the dataset the field
+/// was trained on (its poses place the per-label read-out). Writes `sparsification.json` and PNG plots
+/// into `dir`; returns the report's `uncertainty` block.
 pub fn evaluate(
     dir: &Path,
     gt_dir: &Path,
+    trained_on: &Path,
+    opts: &GeometryOptions,
     summary: &UncertaintySummary,
 ) -> Result<serde_json::Value> {
     let points = summary
         .points
         .as_ref()
         .context("the uncertainty pass found no points.ply to evaluate")?;
-    let opts = GeometryOptions::default();
+    let opts = opts.clone();
     let ev = eval::evaluate_files_full(points, gt_dir, &opts)?;
     let errors = &ev.rec_to_gt;
     let mut curves = serde_json::Map::new();
@@ -263,7 +267,7 @@ pub fn evaluate(
             .with_context(|| format!("reading {}", summary.fisher_path.display()))?,
         &summary.fisher_path.display().to_string(),
     )?;
-    if let Some(v) = by_label(gt_dir, &fisher)? {
+    if let Some(v) = by_label(trained_on, &fisher)? {
         out["by_label"] = v;
     }
     out["seconds"] = summary.seconds.into();
@@ -300,12 +304,17 @@ pub fn by_label(dataset: &Path, fisher: &Fisher) -> Result<Option<serde_json::Va
     let mut band_of: Vec<Vec<usize>> = vec![Vec::new(); Label::ALL.len()];
     let mut under = Vec::new();
     for &i in &data.train {
-        let name = &data.images[i].name;
-        let Some(rest) = name.strip_prefix("images/") else {
+        // `<world>/images/<rest>` → `<world>/gt/{semantic,depth}/<rest>`, wherever the transforms file
+        // that names the image lives (a poses output names it `../<world>/images/...`).
+        let full = data.root.join(&data.images[i].name);
+        let parts: Vec<_> = full.components().collect();
+        let Some(k) = parts.iter().rposition(|c| c.as_os_str() == "images") else {
             return Ok(None);
         };
-        let sem = data.root.join("gt/semantic").join(rest);
-        let dep = data.root.join("gt/depth").join(rest);
+        let world: PathBuf = parts[..k].iter().collect();
+        let rest: PathBuf = parts[k + 1..].iter().collect();
+        let sem = world.join("gt/semantic").join(&rest);
+        let dep = world.join("gt/depth").join(&rest);
         if !(sem.is_file() && dep.is_file()) {
             return Ok(None);
         }

@@ -14,9 +14,8 @@
 //! there are `count` parts (the largest cut first). Then each part grows by the keyframes of its
 //! neighbours within `overlap_m` of one of its own, so the fields overlap at the boundaries.
 //!
-//! Eigenvectors: nalgebra's dense symmetric solver over one part at a time (keyframes, not images: a
-//! 2,000-keyframe mission is an 8 s solve at the top cut and far less below); the sparse Lanczos of
-//! faer is the way up for co-visibility graphs over images.
+//! Eigenvectors: nalgebra's dense symmetric solver for parts up to 400 keyframes, faer's restarted
+//! Lanczos on the sparse graph above (a dense solve is cubic: 8 s at 2,000 keyframes).
 
 use glam::DVec3;
 use nalgebra::{DMatrix, SymmetricEigen};
@@ -144,6 +143,10 @@ pub fn partition(g: &Graph, images: &[usize], limit: Limit) -> Vec<Vec<usize>> {
     parts
 }
 
+/// Parts up to this many keyframes take the dense symmetric eigensolver (exact, and fast at this size);
+/// larger ones faer's restarted Lanczos on the sparse graph.
+const DENSE_MAX: usize = 400;
+
 /// One normalised cut of the subgraph on `nodes` (at least 2): its components when it is disconnected
 /// (the largest against the rest), else Shi–Malik's sweep along the Fiedler vector.
 fn bisect(g: &Graph, nodes: &[usize]) -> (Vec<usize>, Vec<usize>) {
@@ -152,17 +155,21 @@ fn bisect(g: &Graph, nodes: &[usize]) -> (Vec<usize>, Vec<usize>) {
     for (k, &n) in nodes.iter().enumerate() {
         local[n] = k;
     }
-    let mut w = DMatrix::<f64>::zeros(m, m);
-    for (k, &n) in nodes.iter().enumerate() {
-        for &(j, x) in &g.adj[n] {
-            if local[j] != usize::MAX {
-                w[(k, local[j])] = x;
-            }
-        }
-    }
-    let deg: Vec<f64> = (0..m).map(|i| w.row(i).sum()).collect();
+    // The part's graph as adjacency lists in local indices (the graphs built here have no parallel
+    // edges).
+    let adj: Vec<Vec<(usize, f64)>> = nodes
+        .iter()
+        .map(|&n| {
+            g.adj[n]
+                .iter()
+                .filter(|&&(j, _)| local[j] != usize::MAX)
+                .map(|&(j, x)| (local[j], x))
+                .collect()
+        })
+        .collect();
+    let deg: Vec<f64> = adj.iter().map(|r| r.iter().map(|e| e.1).sum()).collect();
     // Components (isolated nodes included).
-    let comp = components(&w);
+    let comp = components(&adj);
     let count = comp.iter().copied().max().map_or(0, |c| c + 1);
     if count > 1 {
         let mut sizes = vec![0usize; count];
@@ -176,16 +183,11 @@ fn bisect(g: &Graph, nodes: &[usize]) -> (Vec<usize>, Vec<usize>) {
     }
     // L_sym = I − D^-½ W D^-½; its second-smallest eigenvector z, and y = D^-½ z.
     let inv_sqrt: Vec<f64> = deg.iter().map(|&d| 1.0 / d.max(1e-300).sqrt()).collect();
-    let mut l = DMatrix::<f64>::identity(m, m);
-    for i in 0..m {
-        for j in 0..m {
-            l[(i, j)] -= inv_sqrt[i] * w[(i, j)] * inv_sqrt[j];
-        }
-    }
-    let eig = SymmetricEigen::new(l);
-    let mut order: Vec<usize> = (0..m).collect();
-    order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
-    let z = eig.eigenvectors.column(order[1]);
+    let z = if m <= DENSE_MAX {
+        fiedler_dense(&adj, &inv_sqrt)
+    } else {
+        fiedler_lanczos(&adj, &deg, &inv_sqrt)
+    };
     let y: Vec<f64> = (0..m).map(|i| z[i] * inv_sqrt[i]).collect();
     // Sweep: nodes sorted by y; each prefix a candidate side, Ncut = cut/assoc(A) + cut/assoc(B).
     let mut by_y: Vec<usize> = (0..m).collect();
@@ -196,8 +198,7 @@ fn bisect(g: &Graph, nodes: &[usize]) -> (Vec<usize>, Vec<usize>) {
     let mut best = (f64::INFINITY, 1);
     for (k, &i) in by_y.iter().enumerate().take(m - 1) {
         // Moving i into A: its edges to A leave the cut, its edges to B join it.
-        for j in 0..m {
-            let x = w[(i, j)];
+        for &(j, x) in &adj[i] {
             if x != 0.0 {
                 if in_a[j] {
                     cut -= x;
@@ -221,9 +222,143 @@ fn bisect(g: &Graph, nodes: &[usize]) -> (Vec<usize>, Vec<usize>) {
     (a, b)
 }
 
-/// Connected component of each node of the dense adjacency `w`.
-fn components(w: &DMatrix<f64>) -> Vec<usize> {
-    let m = w.nrows();
+/// The eigenvector of the second-smallest eigenvalue of L_sym, by nalgebra's dense solver.
+fn fiedler_dense(adj: &[Vec<(usize, f64)>], inv_sqrt: &[f64]) -> Vec<f64> {
+    let m = adj.len();
+    let mut l = DMatrix::<f64>::identity(m, m);
+    for (i, row) in adj.iter().enumerate() {
+        for &(j, x) in row {
+            l[(i, j)] -= inv_sqrt[i] * x * inv_sqrt[j];
+        }
+    }
+    let eig = SymmetricEigen::new(l);
+    let mut order: Vec<usize> = (0..m).collect();
+    order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
+    eig.eigenvectors.column(order[1]).iter().copied().collect()
+}
+
+/// `P (I + D^-½ W D^-½) P` with `P` the projection off `u0 = D^½ 1 / |D^½ 1|`: L_sym's spectrum turned
+/// around (eigenvalue 2 − λ) with its known lowest vector removed, so the largest-magnitude eigenvector
+/// that Lanczos finds first is the Fiedler vector.
+#[derive(Debug)]
+struct ShiftedAdjacency<'a> {
+    adj: &'a [Vec<(usize, f64)>],
+    inv_sqrt: &'a [f64],
+    u0: Vec<f64>,
+}
+
+impl ShiftedAdjacency<'_> {
+    fn project(&self, v: &mut [f64]) {
+        let d: f64 = v.iter().zip(&self.u0).map(|(a, b)| a * b).sum();
+        v.iter_mut().zip(&self.u0).for_each(|(a, b)| *a -= d * b);
+    }
+
+    fn apply_vec(&self, x: &[f64]) -> Vec<f64> {
+        let mut px = x.to_vec();
+        self.project(&mut px);
+        let mut y: Vec<f64> = self
+            .adj
+            .iter()
+            .enumerate()
+            .map(|(i, row)| {
+                let s: f64 = row.iter().map(|&(j, w)| w * self.inv_sqrt[j] * px[j]).sum();
+                px[i] + self.inv_sqrt[i] * s
+            })
+            .collect();
+        self.project(&mut y);
+        y
+    }
+}
+
+impl faer::matrix_free::LinOp<f64> for ShiftedAdjacency<'_> {
+    fn apply_scratch(&self, _rhs_ncols: usize, _par: faer::Par) -> faer::dyn_stack::StackReq {
+        faer::dyn_stack::StackReq::EMPTY
+    }
+    fn nrows(&self) -> usize {
+        self.adj.len()
+    }
+    fn ncols(&self) -> usize {
+        self.adj.len()
+    }
+    fn apply(
+        &self,
+        mut out: faer::MatMut<'_, f64>,
+        rhs: faer::MatRef<'_, f64>,
+        _par: faer::Par,
+        _stack: &mut faer::dyn_stack::MemStack,
+    ) {
+        for c in 0..rhs.ncols() {
+            let x: Vec<f64> = (0..rhs.nrows()).map(|i| rhs[(i, c)]).collect();
+            for (i, v) in self.apply_vec(&x).into_iter().enumerate() {
+                out[(i, c)] = v;
+            }
+        }
+    }
+    fn conj_apply(
+        &self,
+        out: faer::MatMut<'_, f64>,
+        rhs: faer::MatRef<'_, f64>,
+        par: faer::Par,
+        stack: &mut faer::dyn_stack::MemStack,
+    ) {
+        // Real and symmetric: its conjugate is itself.
+        self.apply(out, rhs, par, stack)
+    }
+}
+
+/// The Fiedler vector by faer's restarted Lanczos on [`ShiftedAdjacency`] (O(edges) per iteration,
+/// no m × m matrix); falls back to the dense solver if it does not converge.
+fn fiedler_lanczos(adj: &[Vec<(usize, f64)>], deg: &[f64], inv_sqrt: &[f64]) -> Vec<f64> {
+    use faer::matrix_free::eigen::{
+        partial_self_adjoint_eigen, partial_self_adjoint_eigen_scratch, PartialEigenParams,
+    };
+    let m = adj.len();
+    let norm = deg.iter().sum::<f64>().sqrt().max(1e-300);
+    let op = ShiftedAdjacency {
+        adj,
+        inv_sqrt,
+        u0: deg.iter().map(|d| d.sqrt() / norm).collect(),
+    };
+    // A deterministic start with no special structure, off u0.
+    let mut v0: Vec<f64> = (0..m)
+        .map(|i| ((i as f64 + 1.0) * 0.618_034).fract() - 0.5)
+        .collect();
+    op.project(&mut v0);
+    let v0 = faer::Col::<f64>::from_fn(m, |i| v0[i]);
+    let params = PartialEigenParams {
+        min_dim: 20.min(m),
+        max_dim: 60.min(m),
+        max_restarts: 2000,
+        ..Default::default()
+    };
+    let mut vecs = faer::Mat::<f64>::zeros(m, 1);
+    let mut vals = [0.0f64; 1];
+    let mut mem = faer::dyn_stack::MemBuffer::new(partial_self_adjoint_eigen_scratch(
+        &op,
+        1,
+        faer::Par::Seq,
+        params,
+    ));
+    let info = partial_self_adjoint_eigen(
+        vecs.as_mut(),
+        &mut vals,
+        &op,
+        v0.as_ref(),
+        1e-10,
+        faer::Par::Seq,
+        faer::dyn_stack::MemStack::new(&mut mem),
+        params,
+    );
+    let z: Vec<f64> = (0..m).map(|i| vecs[(i, 0)]).collect();
+    if info.n_converged_eigen < 1 || !z.iter().all(|v| v.is_finite()) {
+        return fiedler_dense(adj, inv_sqrt);
+    }
+    z
+}
+
+/// Connected component of each node of the graph `adj`.
+fn components(adj: &[Vec<(usize, f64)>]) -> Vec<usize> {
+    let m = adj.len();
     let mut comp = vec![usize::MAX; m];
     let mut next = 0;
     for s in 0..m {
@@ -233,8 +368,8 @@ fn components(w: &DMatrix<f64>) -> Vec<usize> {
         let mut stack = vec![s];
         comp[s] = next;
         while let Some(i) = stack.pop() {
-            for j in 0..m {
-                if w[(i, j)] != 0.0 && comp[j] == usize::MAX {
+            for &(j, x) in &adj[i] {
+                if x != 0.0 && comp[j] == usize::MAX {
                     comp[j] = next;
                     stack.push(j);
                 }
@@ -762,6 +897,40 @@ pub fn merge(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The sparse Lanczos path finds the dense solver's Fiedler vector (up to sign) on a 600-keyframe
+    /// path graph, so large parts are cut as small ones are.
+    #[test]
+    fn lanczos_fiedler_matches_the_dense_one() {
+        let n = 600;
+        let positions: Vec<DVec3> = (0..n)
+            .map(|i| {
+                let t = i as f64 * 0.5;
+                DVec3::new(t, (t * 0.37).sin() * 3.0, (i % 7) as f64 * 0.01)
+            })
+            .collect();
+        let g = distance_graph(&positions, 10);
+        let adj: Vec<Vec<(usize, f64)>> = g.adj.clone();
+        let deg: Vec<f64> = adj.iter().map(|r| r.iter().map(|e| e.1).sum()).collect();
+        let inv_sqrt: Vec<f64> = deg.iter().map(|d| 1.0 / d.sqrt()).collect();
+        let dense = fiedler_dense(&adj, &inv_sqrt);
+        let t = std::time::Instant::now();
+        let sparse = fiedler_lanczos(&adj, &deg, &inv_sqrt);
+        let secs = t.elapsed().as_secs_f64();
+        let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let dot: f64 = dense.iter().zip(&sparse).map(|(a, b)| a * b).sum::<f64>()
+            / (norm(&dense) * norm(&sparse));
+        assert!(dot.abs() > 0.999, "cosine {dot} ({secs:.3} s)");
+        // The cut through the sparse path is the dense one's: the path's middle.
+        let (a, b) = bisect(&g, &(0..n).collect::<Vec<_>>());
+        assert!(
+            a.len().abs_diff(b.len()) < n / 5,
+            "{} / {}",
+            a.len(),
+            b.len()
+        );
+        assert!(a.contains(&0) != a.contains(&(n - 1)));
+    }
 
     /// A path along x with `n` keyframes `step` apart.
     fn line(n: usize, step: f64) -> Vec<DVec3> {

@@ -86,6 +86,11 @@ fn demo_ci_on_wgsl_reports_lidar_vision_and_silvr_with_silvr_beating_vision() {
     );
     assert_eq!(poses["registered"], poses["images"], "{poses}");
     assert!(f(poses, "rmse_px") < 1.0, "{poses}");
+    // The fields trained on the refined poses (a user's data has no exact ones); their clouds were scored
+    // after the Sim(3) from those poses to the exact ones, which carries the prior's scale drift.
+    assert_eq!(poses["trained_on"], "refined", "{poses}");
+    let scale = f(&poses["alignment"], "scale");
+    assert!((scale - 1.0).abs() < 0.02, "{poses}");
     assert!(
         out.join("poses/colmap/points3D.txt").is_file()
             && out.join("poses/transforms.json").is_file()

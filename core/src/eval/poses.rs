@@ -33,6 +33,10 @@ pub struct PoseErrors {
     pub inliers: usize,
     /// Scale of the Sim(3) alignment (estimate → ground truth).
     pub scale: f64,
+    /// The whole alignment (estimate → ground truth): what maps a reconstruction made on the estimated
+    /// poses into the ground truth's frame for scoring.
+    #[serde(default)]
+    pub alignment: Sim3,
     /// Camera-centre error after alignment (m).
     pub ate_rmse_m: f64,
     pub ate_median_m: f64,
@@ -147,6 +151,7 @@ pub fn pose_errors_of_sequences(
         registered: est.len(),
         inliers: keep.iter().filter(|&&k| k).count(),
         scale: sim.scale,
+        alignment: sim,
         ate_rmse_m: rms(&ate),
         ate_median_m: median(&ate),
         ate_max_m: ate.iter().copied().fold(0.0, f64::max),
@@ -217,7 +222,7 @@ fn resolved(base: &Path, rel: &str) -> std::path::PathBuf {
 /// Errors of named camera → world poses (OpenCV axes) against the frames of `gt`, matched by image path:
 /// exactly; else, when `base` (the folder the names are relative to) is given, by the file both name;
 /// else by a unique `/NAME` suffix. `est_name` names the estimate in errors.
-fn compare_named(
+pub fn compare_named(
     est: Vec<(String, Se3)>,
     base: Option<&Path>,
     est_name: &str,

@@ -518,8 +518,8 @@ fn fast_atan2(y: f32, x: f32) -> f32 {
     let (lo, hi) = (ax.min(ay), ax.max(ay));
     let a = if hi > 0.0 { lo / hi } else { 0.0 };
     let s = a * a;
-    let mut r = (((-0.013_480_47 * s + 0.057_477_314) * s - 0.121_239_07) * s + 0.195_635_925) * s;
-    r = ((r - 0.332_994_6) * s + 0.999_995_63) * a;
+    let mut r = (((-0.013_480_47 * s + 0.057_477_31) * s - 0.121_239_07) * s + 0.195_635_93) * s;
+    r = ((r - 0.332_994_6) * s + 0.999_995_6) * a;
     r = if ay > ax { FRAC_PI_2 - r } else { r };
     r = if x < 0.0 { PI - r } else { r };
     r.copysign(y)

@@ -695,39 +695,18 @@ fn components(keyframes: usize, matches: &[PairMatches], keyframe_of: &[usize]) 
         .count()
 }
 
-/// Umeyama from the refined keyframe centres to the prior's, refitted on those within 3 robust σ
-/// (a prior's gross errors must not tilt the frame).
+/// The Sim(3) from the refined keyframe poses to the prior's: the robust fit `silvr eval-poses` uses
+/// (refitted on the keyframes within 3 robust σ, so a prior's gross errors do not tilt the frame), with
+/// each keyframe's axis tips beside its centre. Centres alone leave a straight path's roll about its own
+/// direction free: on the ci world's street they tilted the refined map 3° off the prior's vertical.
 fn align_to_prior(refined: &[Se3], prior: &[Se3]) -> Result<(Sim3, usize), PosesError> {
-    let src: Vec<DVec3> = refined.iter().map(|p| p.trans).collect();
-    let dst: Vec<DVec3> = prior.iter().map(|p| p.trans).collect();
-    if src.len() < 3 {
+    if refined.len() < 3 {
         // Too few centres to fix a similarity: keep the adjusted frame (the absolute priors hold it).
-        return Ok((Sim3::from_se3(Se3::IDENTITY), src.len()));
+        return Ok((Sim3::from_se3(Se3::IDENTITY), refined.len()));
     }
-    let mut keep = vec![true; src.len()];
-    let mut sim = Sim3::from_se3(Se3::IDENTITY);
-    for _ in 0..10 {
-        let (s, d): (Vec<DVec3>, Vec<DVec3>) = src
-            .iter()
-            .zip(&dst)
-            .zip(&keep)
-            .filter(|(_, &k)| k)
-            .map(|((a, b), _)| (*a, *b))
-            .unzip();
-        sim = Sim3::umeyama(&s, &d, true).map_err(|e| PosesError::Align(e.to_string()))?;
-        let r: Vec<f64> = src
-            .iter()
-            .zip(&dst)
-            .map(|(&a, &b)| sim.transform_point(a).distance(b))
-            .collect();
-        let sigma = 1.4826 * crate::eval::metrics::median(&r);
-        let next: Vec<bool> = r.iter().map(|&x| x <= (3.0 * sigma).max(1e-9)).collect();
-        if next == keep || next.iter().filter(|&&k| k).count() < 3 {
-            break;
-        }
-        keep = next;
-    }
-    Ok((sim, keep.iter().filter(|&&k| k).count()))
+    let e = crate::eval::poses::pose_errors(refined, prior)
+        .map_err(|e| PosesError::Align(e.to_string()))?;
+    Ok((e.alignment, e.inliers))
 }
 
 #[cfg(test)]

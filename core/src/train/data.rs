@@ -95,7 +95,8 @@ pub struct LoadOptions {
     pub skip_lidar: bool,
 }
 
-fn resize_rgb(px: Vec<[u8; 3]>, w: u32, h: u32, f: u32) -> Vec<[u8; 3]> {
+/// Colour downscaled by `f`: each output pixel the mean of an f×f block (what training reads at `--downscale`).
+pub fn resize_rgb(px: Vec<[u8; 3]>, w: u32, h: u32, f: u32) -> Vec<[u8; 3]> {
     if f <= 1 {
         return px;
     }
@@ -183,7 +184,7 @@ fn resize_lidar(
 }
 
 /// Nearest-neighbour downscale (normals, masks must not be averaged across edges).
-fn resize_nearest<T: Copy>(px: Vec<T>, w: u32, h: u32, f: u32) -> Vec<T> {
+pub fn resize_nearest<T: Copy>(px: Vec<T>, w: u32, h: u32, f: u32) -> Vec<T> {
     if f <= 1 || px.is_empty() {
         return px;
     }
