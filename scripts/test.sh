@@ -14,6 +14,19 @@ export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
 export SILVR_STUDIO_FIXTURES="${SILVR_STUDIO_FIXTURES:-$PWD/target/studio-fixtures}"
 rm -rf "$SILVR_STUDIO_FIXTURES"
 
+# A one-node Slurm for the reconstruct test (`silvr reconstruct --scheduler slurm`): started here as root
+# (Debian's slurmctld/slurmd/munge, no systemd needed) and stopped by PID on exit; elsewhere the test skips.
+if [ "$(id -u)" = 0 ] && [ "${SILVR_NO_SLURM:-0}" != 1 ] && command -v apt-get >/dev/null; then
+	echo "== one-node Slurm (scripts/slurm.sh up)"
+	mkdir -p target
+	if ! STATE="$PWD/target/slurm" scripts/slurm.sh up >target/slurm-up.log 2>&1; then
+		cat target/slurm-up.log
+		exit 1
+	fi
+	trap 'STATE="$PWD/target/slurm" scripts/slurm.sh down' EXIT
+	export SILVR_REQUIRE_SLURM=1
+fi
+
 echo "== native tests (cargo test --workspace)"
 # One build of every target first (the CLI tests run target/debug/silvr): building `-p silvr` on its own
 # resolved dependency features differently and compiled naga, wgpu and image a second time.

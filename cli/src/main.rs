@@ -356,6 +356,10 @@ enum Command {
     /// the merge (the more certain submap keeps each overlap voxel) and, with ground truth, its evaluation
     /// filtered and unfiltered. Rerun on the same --out to finish a killed job (finished submaps are kept).
     Reconstruct(reconstruct::ReconstructCmd),
+    /// One submap of a reconstruction (train → uncertainty → filtered export) from its
+    /// OUT/reconstruct.json: what each Slurm array task runs (the index from SLURM_ARRAY_TASK_ID), and what
+    /// any other scheduler can run per index before `silvr reconstruct` merges.
+    ReconstructTask(reconstruct::TaskCmd),
     /// Pack what training reads from a dataset (transforms.json, images, lidar depth, normals, sky masks,
     /// calib, manifest) into one tar archive a user can drop into the studio, or inspect with `tar tf`.
     Pack {
@@ -621,6 +625,7 @@ fn main() {
         Command::Bench { points, reps, json } => bench(points, reps, json),
         Command::Serve(c) => serve::run(c),
         Command::Reconstruct(c) => reconstruct::run(&c),
+        Command::ReconstructTask(c) => reconstruct::task(&c),
         Command::Pack {
             dataset,
             out,

@@ -4,16 +4,24 @@
 //! submap keeps each overlapping voxel) and, where the dataset has ground truth, the evaluation of the
 //! merged map filtered and unfiltered.
 //!
-//! Scheduler: `local`, one submap after another. A submap whose `train.json` exists is done and skipped,
-//! so a rerun after a kill redoes only the submaps that had not finished. A submap that fails is written
-//! to `train/NAME.error.txt` and left out of the merge; the others go on, and the run exits non-zero
-//! naming it. Slurm arrays, the
-//! `reconstruct-task` command and the blended renders are the rest of the issue.
+//! The per-submap work is a task (`silvr reconstruct-task OUT/reconstruct.json --index I`, the index from
+//! `SLURM_ARRAY_TASK_ID` when not given): `reconstruct.json` records what every task is computed from (the
+//! dataset, the submaps, the training settings, the program's version), and each finished submap records
+//! the settings it was trained with (`train/NAME/task.json`, written last). A submap is done when that
+//! record matches; a rerun redoes only the rest, so a kill loses at most the tasks that were running.
+//! A failed task writes `train/NAME.error.txt` and the others go on.
+//!
+//! Schedulers: `local` runs the tasks here (`--jobs N` at once as child processes, one at a time in
+//! process by default); `slurm` writes `slurm/job.sh`, submits one array of the missing tasks
+//! (`sbatch --array`), follows it (`squeue`, `scontrol`), and reports failed tasks with their logs. Any
+//! other scheduler can run the same manifest: one `reconstruct-task` per index, then `reconstruct` again
+//! to merge. Blended renders are the rest of issue 19.
 
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
+use serde::{Deserialize, Serialize};
 use silvr_core::eval::{self, GeometryOptions};
 use silvr_core::pointcloud::{read_ply, write_ply};
 
@@ -38,9 +46,24 @@ pub struct ReconstructCmd {
     /// Keyframes within this many metres of a neighbouring submap's are trained by both.
     #[arg(long, default_value_t = 2.0)]
     pub overlap: f64,
-    /// Where submap tasks run: local (Slurm: not yet).
+    /// Where submap tasks run: `local` or `slurm` (one `sbatch --array` of the missing submaps).
     #[arg(long, default_value = "local")]
     pub scheduler: String,
+    /// Local scheduler: submap tasks at once (child processes; 1 = one after another in this process).
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
+    /// Slurm: the partition (`#SBATCH --partition`).
+    #[arg(long)]
+    pub partition: Option<String>,
+    /// Slurm: the time limit per task (`#SBATCH --time`, e.g. 02:00:00).
+    #[arg(long)]
+    pub time: Option<String>,
+    /// Slurm: GPUs per task (`#SBATCH --gpus-per-task`).
+    #[arg(long)]
+    pub gpus: Option<u32>,
+    /// Slurm: extra `#SBATCH` lines, as written after `#SBATCH ` (repeatable: `--sbatch "--qos=long"`).
+    #[arg(long = "sbatch", allow_hyphen_values = true)]
+    pub sbatch: Vec<String>,
     #[arg(long, default_value = "silvr")]
     pub mode: String,
     #[arg(long, default_value = "small")]
@@ -63,20 +86,222 @@ pub struct ReconstructCmd {
     pub uncertainty_rays: usize,
 }
 
-pub fn run(c: &ReconstructCmd) -> Result<()> {
-    if c.scheduler != "local" {
+/// `silvr reconstruct-task`: one submap of a reconstruction, from its manifest.
+#[derive(clap::Args)]
+pub struct TaskCmd {
+    /// The reconstruction's `reconstruct.json` (written by `silvr reconstruct`).
+    pub manifest: PathBuf,
+    /// Which submap (0-based); default: `SLURM_ARRAY_TASK_ID` (Kubernetes Indexed Jobs:
+    /// `JOB_COMPLETION_INDEX`).
+    #[arg(long)]
+    pub index: Option<usize>,
+}
+
+/// How each submap is trained: what a finished submap's `task.json` must match to count as done.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TaskSettings {
+    pub mode: String,
+    pub model: String,
+    pub steps: u32,
+    pub rays: usize,
+    pub backend: String,
+    pub seed: u64,
+    pub export_rays: usize,
+    pub uncertainty_batches: usize,
+    pub uncertainty_rays: usize,
+    /// The program that trained it (a new version retrains).
+    pub version: String,
+}
+
+/// How the submaps were cut: a rerun with other options is refused rather than mixing two cuts.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CutSettings {
+    pub method: String,
+    pub count: Option<usize>,
+    pub max_images: Option<usize>,
+    pub overlap: f64,
+}
+
+/// `OUT/reconstruct.json`: everything a task needs, with absolute paths (tasks run from anywhere).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Manifest {
+    pub dataset: PathBuf,
+    pub out: PathBuf,
+    pub cut: CutSettings,
+    pub names: Vec<String>,
+    pub settings: TaskSettings,
+}
+
+impl Manifest {
+    fn read(path: &Path) -> Result<Manifest> {
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        serde_json::from_slice(&bytes).with_context(|| {
+            format!(
+                "{}: not a reconstruct.json written by this version of silvr",
+                path.display()
+            )
+        })
+    }
+
+    fn dir(&self, name: &str) -> PathBuf {
+        self.out.join("train").join(name)
+    }
+
+    /// Whether submap `k` finished with the current settings.
+    fn done(&self, k: usize) -> bool {
+        let dir = self.dir(&self.names[k]);
+        dir.join("train.json").is_file()
+            && std::fs::read(dir.join("task.json"))
+                .ok()
+                .and_then(|b| serde_json::from_slice::<TaskSettings>(&b).ok())
+                .is_some_and(|s| s == self.settings)
+    }
+
+    fn error_file(&self, name: &str) -> PathBuf {
+        self.out.join("train").join(format!("{name}.error.txt"))
+    }
+}
+
+/// `silvr reconstruct-task`: trains submap `index` of the manifest (skips it when already done).
+pub fn task(c: &TaskCmd) -> Result<()> {
+    let m = Manifest::read(&c.manifest)?;
+    let index = match c.index {
+        Some(i) => i,
+        None => ["SLURM_ARRAY_TASK_ID", "JOB_COMPLETION_INDEX"]
+            .iter()
+            .find_map(|v| std::env::var(v).ok())
+            .context("no --index, and neither SLURM_ARRAY_TASK_ID nor JOB_COMPLETION_INDEX is set")?
+            .trim()
+            .parse()
+            .context("the task index in the environment is not a number")?,
+    };
+    if index >= m.names.len() {
         anyhow::bail!(
-            "--scheduler {}: only local runs in this build (Slurm arrays are being built: issue 19)",
-            c.scheduler
+            "--index {index}: {} lists {} submaps (0..{})",
+            c.manifest.display(),
+            m.names.len(),
+            m.names.len()
         );
     }
-    let mode: silvr_core::train::Mode = c
+    run_task(&m, index, true)
+}
+
+/// One submap: train → uncertainty → filtered export into `train/NAME`, then its `task.json`. A failure
+/// is written to `train/NAME.error.txt` (and returned).
+fn run_task(m: &Manifest, k: usize, say: bool) -> Result<()> {
+    let name = &m.names[k];
+    let dir = m.dir(name);
+    if m.done(k) {
+        if say {
+            eprintln!(
+                "[reconstruct] {name} ({}/{}): done earlier",
+                k + 1,
+                m.names.len()
+            );
+        }
+        return Ok(());
+    }
+    if say {
+        eprintln!(
+            "[reconstruct] {name} ({}/{}): training",
+            k + 1,
+            m.names.len()
+        );
+    }
+    // A killed or outdated run leaves a folder: start that submap again.
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(m.out.join("train"))?;
+    let s = &m.settings;
+    let trained = (|| -> Result<()> {
+        let mode: silvr_core::train::Mode = s
+            .mode
+            .parse()
+            .map_err(|e: String| anyhow::anyhow!("--mode: {e}"))?;
+        train::run(&TrainArgs {
+            dataset: m.out.join("submaps").join(name),
+            mode,
+            steps: s.steps,
+            rays: s.rays,
+            model: s.model.clone(),
+            out: dir.clone(),
+            resume: None,
+            checkpoint_every: 0,
+            backend: s.backend.clone(),
+            downscale: 1,
+            seed: s.seed,
+            export_rays: s.export_rays,
+            render_views: None,
+            export_depth: Default::default(),
+            quiet: true,
+            view_normals: false,
+            depth_sigma: None,
+            uncertainty: (mode != silvr_core::train::Mode::Vision).then(|| {
+                silvr_core::uncertainty::UncertaintyConfig {
+                    batches: s.uncertainty_batches,
+                    rays_per_batch: s.uncertainty_rays,
+                    ..Default::default()
+                }
+            }),
+        })?;
+        crate::write_atomic(
+            &dir.join("task.json"),
+            serde_json::to_string_pretty(s)?.as_bytes(),
+        )
+    })()
+    .with_context(|| format!("submap {name}"));
+    let err_file = m.error_file(name);
+    match trained {
+        Ok(()) => {
+            let _ = std::fs::remove_file(&err_file);
+            Ok(())
+        }
+        Err(e) => {
+            let text = format!("{e:#}\n");
+            let _ = std::fs::write(&err_file, &text);
+            Err(e.context(format!("written to {}", err_file.display())))
+        }
+    }
+}
+
+/// Why a task did not finish: its error, and where its log is.
+struct Failure {
+    name: String,
+    error: String,
+    log: Option<PathBuf>,
+}
+
+pub fn run(c: &ReconstructCmd) -> Result<()> {
+    if !["local", "slurm"].contains(&c.scheduler.as_str()) {
+        anyhow::bail!("--scheduler {}: expected local or slurm", c.scheduler);
+    }
+    let _: silvr_core::train::Mode = c
         .mode
         .parse()
         .map_err(|e: String| anyhow::anyhow!("--mode: {e}"))?;
     let total = Instant::now();
     std::fs::create_dir_all(&c.out).with_context(|| format!("creating {}", c.out.display()))?;
-    let subs = c.out.join("submaps");
+    let abs =
+        |p: &Path| std::path::absolute(p).with_context(|| format!("resolving {}", p.display()));
+    let out = abs(&c.out)?;
+    let cut = CutSettings {
+        method: c.submaps.clone(),
+        count: c.count,
+        max_images: c.max_images,
+        overlap: c.overlap,
+    };
+    let manifest_path = out.join("reconstruct.json");
+    if manifest_path.is_file() {
+        let before = Manifest::read(&manifest_path)?;
+        if before.cut != cut {
+            anyhow::bail!(
+                "{} was cut into submaps with other options ({:?}); this run asks for {:?}: use a new --out",
+                out.display(),
+                before.cut,
+                cut
+            );
+        }
+    }
+    let subs = out.join("submaps");
     let plan: serde_json::Value = if subs.join("manifest.json").is_file() {
         eprintln!("[reconstruct] submaps: reusing {}", subs.display());
         serde_json::from_slice(&std::fs::read(subs.join("manifest.json"))?)
@@ -103,71 +328,44 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
     if names.is_empty() {
         anyhow::bail!("{}/manifest.json lists no submaps", subs.display());
     }
+    let m = Manifest {
+        dataset: abs(&c.dataset)?,
+        out: out.clone(),
+        cut,
+        names: names.clone(),
+        settings: TaskSettings {
+            mode: c.mode.clone(),
+            model: c.model.clone(),
+            steps: c.steps,
+            rays: c.rays,
+            backend: c.backend.clone(),
+            seed: c.seed,
+            export_rays: c.export_rays,
+            uncertainty_batches: c.uncertainty_batches,
+            uncertainty_rays: c.uncertainty_rays,
+            version: env!("CARGO_PKG_VERSION").to_string(),
+        },
+    };
+    crate::write_atomic(&manifest_path, serde_json::to_string_pretty(&m)?.as_bytes())?;
+
+    let started: Vec<bool> = (0..names.len()).map(|k| !m.done(k)).collect();
+    let failures = match c.scheduler.as_str() {
+        "slurm" => slurm(c, &m, &manifest_path)?,
+        _ => local(c, &m, &manifest_path)?,
+    };
+
+    // Merge what finished.
     let mut per_submap = Vec::new();
-    let mut failed = Vec::new();
     let mut filtered = Vec::new();
     let mut unfiltered = Vec::new();
     for (k, name) in names.iter().enumerate() {
-        let dir = c.out.join("train").join(name);
-        let done = dir.join("train.json");
-        let t = Instant::now();
-        if done.is_file() {
-            eprintln!(
-                "[reconstruct] {name} ({}/{}): done earlier",
-                k + 1,
-                names.len()
-            );
-        } else {
-            eprintln!("[reconstruct] {name} ({}/{}): training", k + 1, names.len());
-            // A killed run leaves a partial folder: start that submap again.
-            let _ = std::fs::remove_dir_all(&dir);
-            let trained = train::run(&TrainArgs {
-                dataset: subs.join(name),
-                mode,
-                steps: c.steps,
-                rays: c.rays,
-                model: c.model.clone(),
-                out: dir.clone(),
-                resume: None,
-                checkpoint_every: 0,
-                backend: c.backend.clone(),
-                downscale: 1,
-                seed: c.seed,
-                export_rays: c.export_rays,
-                render_views: None,
-                export_depth: Default::default(),
-                quiet: true,
-                view_normals: false,
-                depth_sigma: None,
-                uncertainty: (mode != silvr_core::train::Mode::Vision).then(|| {
-                    silvr_core::uncertainty::UncertaintyConfig {
-                        batches: c.uncertainty_batches,
-                        rays_per_batch: c.uncertainty_rays,
-                        ..Default::default()
-                    }
-                }),
-            })
-            .with_context(|| format!("submap {name}"));
-            // A failed submap is reported with its error file and does not stop the others.
-            if let Err(e) = trained {
-                let log = c.out.join("train").join(format!("{name}.error.txt"));
-                let text = format!("{e:#}\n");
-                let _ = std::fs::create_dir_all(c.out.join("train"));
-                let _ = std::fs::write(&log, &text);
-                eprintln!(
-                    "[reconstruct] {name} failed: {e:#} (written to {}); the others go on",
-                    log.display()
-                );
-                failed.push(serde_json::json!({
-                    "name": name,
-                    "error": text.trim_end(),
-                    "log": log,
-                }));
-                continue;
-            }
-            let _ = std::fs::remove_file(c.out.join("train").join(format!("{name}.error.txt")));
+        if !m.done(k) {
+            continue;
         }
-        let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(&done)?)?;
+        let dir = m.dir(name);
+        let summary: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.join("train.json"))?)
+                .with_context(|| format!("reading {}/train.json", dir.display()))?;
         let read = |f: &str| {
             let p = dir.join(f);
             read_ply(&p).with_context(|| format!("reading {}", p.display()))
@@ -184,28 +382,34 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             "kept": kept.len(),
             "heldout_psnr_mean": summary["heldout_psnr_mean"],
             "train_s": summary["train_s"],
-            "seconds_this_run": t.elapsed().as_secs_f64(),
+            "backend": summary["backend"],
+            "backends": summary["stages"],
+            "trained_this_run": started[k],
         }));
         filtered.push((k as u32, kept));
         unfiltered.push((k as u32, all));
     }
+    let failed: Vec<serde_json::Value> = failures
+        .iter()
+        .map(|f| serde_json::json!({ "name": f.name, "error": f.error, "log": f.log }))
+        .collect();
     if filtered.is_empty() {
         anyhow::bail!(
             "every submap failed ({}); see the error files under {}",
             names.join(", "),
-            c.out.join("train").display()
+            out.join("train").display()
         );
     }
     let merge_voxel = silvr_core::submap::MERGE_VOXEL_M;
     let merged = silvr_core::submap::merge(&filtered, merge_voxel);
     let merged_all = silvr_core::submap::merge(&unfiltered, merge_voxel);
-    let merged_path = c.out.join("merged.ply");
-    let merged_all_path = c.out.join("merged_unfiltered.ply");
-    write_ply(&merged_path, &merged)?;
-    write_ply(&merged_all_path, &merged_all)?;
+    let merged_path = out.join("merged.ply");
+    let merged_all_path = out.join("merged_unfiltered.ply");
+    write_ply_atomic(&merged_path, &merged)?;
+    write_ply_atomic(&merged_all_path, &merged_all)?;
     eprintln!(
         "[reconstruct] merged {} submaps: {} points ({} before the uncertainty filter) → {}",
-        names.len(),
+        filtered.len(),
         merged.len(),
         merged_all.len(),
         merged_path.display()
@@ -229,8 +433,9 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         serde_json::Value::Null
     };
     let report = serde_json::json!({
-        "dataset": c.dataset,
+        "dataset": m.dataset,
         "scheduler": c.scheduler,
+        "manifest": manifest_path,
         "submaps": plan,
         "per_submap": per_submap,
         "merge": { "rule": "per 0.2 m voxel, the submap with the lowest median log_std_combined there keeps its points", "voxel_m": merge_voxel },
@@ -240,23 +445,308 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         "evaluation": evaluation,
         "seconds": total.elapsed().as_secs_f64(),
     });
-    let path = c.out.join("report.json");
+    let path = out.join("report.json");
     crate::write_atomic(&path, serde_json::to_string_pretty(&report)?.as_bytes())?;
     eprintln!(
         "[reconstruct] report: {} ({:.1} s); open in the studio: {}",
         path.display(),
         total.elapsed().as_secs_f64(),
-        crate::serve::open_command(&c.out)
+        crate::serve::open_command(&out)
     );
-    if !failed.is_empty() {
-        let names: Vec<&str> = failed.iter().filter_map(|f| f["name"].as_str()).collect();
+    if !failures.is_empty() {
+        let names: Vec<&str> = failures.iter().map(|f| f.name.as_str()).collect();
         anyhow::bail!(
             "{} of {} submaps failed ({}): the map above is merged without them; fix the cause and rerun on {} to train only those",
-            failed.len(),
-            per_submap.len() + failed.len(),
+            failures.len(),
+            m.names.len(),
             names.join(", "),
-            c.out.display()
+            out.display()
         );
     }
     Ok(())
+}
+
+/// A PLY written under a temporary name, then renamed (a kill never leaves half a merged map).
+fn write_ply_atomic(path: &Path, cloud: &silvr_core::pointcloud::PointCloud) -> Result<()> {
+    let tmp = path.with_extension("ply.partial");
+    write_ply(&tmp, cloud).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("renaming {}", tmp.display()))
+}
+
+/// The local scheduler: in process one after another, or `--jobs N` child processes at once.
+fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<Failure>> {
+    let mut failures = Vec::new();
+    if c.jobs <= 1 {
+        for k in 0..m.names.len() {
+            if let Err(e) = run_task(m, k, true) {
+                eprintln!(
+                    "[reconstruct] {} failed: {e:#}; the others go on",
+                    m.names[k]
+                );
+                failures.push(Failure {
+                    name: m.names[k].clone(),
+                    error: format!("{e:#}"),
+                    log: Some(m.error_file(&m.names[k])),
+                });
+            }
+        }
+        return Ok(failures);
+    }
+    let exe = std::env::current_exe().context("finding the silvr binary")?;
+    let logs = m.out.join("logs");
+    std::fs::create_dir_all(&logs)?;
+    let todo: Vec<usize> = (0..m.names.len()).filter(|&k| !m.done(k)).collect();
+    for k in (0..m.names.len()).filter(|k| !todo.contains(k)) {
+        eprintln!(
+            "[reconstruct] {} ({}/{}): done earlier",
+            m.names[k],
+            k + 1,
+            m.names.len()
+        );
+    }
+    let mut queue = todo.into_iter();
+    let mut running: Vec<(usize, std::process::Child, PathBuf)> = Vec::new();
+    loop {
+        while running.len() < c.jobs {
+            let Some(k) = queue.next() else { break };
+            let log = logs.join(format!("{}.log", m.names[k]));
+            let file = std::fs::File::create(&log)
+                .with_context(|| format!("creating {}", log.display()))?;
+            let child = std::process::Command::new(&exe)
+                .arg("reconstruct-task")
+                .arg(manifest_path)
+                .arg("--index")
+                .arg(k.to_string())
+                .stdout(file.try_clone()?)
+                .stderr(file)
+                .spawn()
+                .with_context(|| format!("starting {}", exe.display()))?;
+            eprintln!(
+                "[reconstruct] {} ({}/{}): training (log {})",
+                m.names[k],
+                k + 1,
+                m.names.len(),
+                log.display()
+            );
+            running.push((k, child, log));
+        }
+        if running.is_empty() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+        let mut i = 0;
+        while i < running.len() {
+            if let Some(status) = running[i].1.try_wait()? {
+                let (k, _, log) = running.swap_remove(i);
+                if !status.success() || !m.done(k) {
+                    let error = std::fs::read_to_string(m.error_file(&m.names[k]))
+                        .unwrap_or_else(|_| format!("exited with {status}"));
+                    eprintln!(
+                        "[reconstruct] {} failed ({}): see {}",
+                        m.names[k],
+                        error.trim(),
+                        log.display()
+                    );
+                    failures.push(Failure {
+                        name: m.names[k].clone(),
+                        error: error.trim().to_string(),
+                        log: Some(log),
+                    });
+                } else {
+                    eprintln!("[reconstruct] {}: done", m.names[k]);
+                }
+            } else {
+                i += 1;
+            }
+        }
+    }
+    Ok(failures)
+}
+
+/// Runs a command, its stdout as text, or an error naming it and its stderr.
+fn command(program: &str, args: &[&str]) -> Result<String> {
+    let out = std::process::Command::new(program)
+        .args(args)
+        .output()
+        .with_context(|| format!("running {program} (is Slurm installed and on PATH?)"))?;
+    if !out.status.success() {
+        anyhow::bail!(
+            "{program} {}: {}",
+            args.join(" "),
+            String::from_utf8_lossy(&out.stderr).trim()
+        );
+    }
+    Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+}
+
+/// The Slurm scheduler: one array job of the submaps not done (a job of an earlier run still in the
+/// queue is followed instead of submitting again), followed to the end; tasks that did not finish are
+/// reported with their state and log.
+fn slurm(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<Failure>> {
+    let dir = m.out.join("slurm");
+    let logs = m.out.join("logs");
+    std::fs::create_dir_all(&dir)?;
+    std::fs::create_dir_all(&logs)?;
+    let submitted = dir.join("submitted.json");
+    let todo: Vec<usize> = (0..m.names.len()).filter(|&k| !m.done(k)).collect();
+    for k in (0..m.names.len()).filter(|k| !todo.contains(k)) {
+        eprintln!(
+            "[reconstruct] {} ({}/{}): done earlier",
+            m.names[k],
+            k + 1,
+            m.names.len()
+        );
+    }
+    if todo.is_empty() {
+        return Ok(Vec::new());
+    }
+    // An earlier run's job still queued or running: follow it.
+    let earlier: Option<(String, Vec<usize>)> = std::fs::read(&submitted)
+        .ok()
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+        .and_then(|v| {
+            let id = v["job"].as_str()?.to_string();
+            let idx = v["indices"]
+                .as_array()?
+                .iter()
+                .filter_map(|x| x.as_u64().map(|x| x as usize))
+                .collect();
+            Some((id, idx))
+        })
+        .filter(|(id, _)| {
+            command("squeue", &["-h", "-j", id, "-o", "%i"])
+                .map(|s| !s.trim().is_empty())
+                .unwrap_or(false)
+        });
+    let (job, indices) = match earlier {
+        Some((id, idx)) => {
+            eprintln!(
+                "[reconstruct] slurm job {id} from an earlier run is still queued: following it"
+            );
+            (id, idx)
+        }
+        None => {
+            let exe = std::env::current_exe().context("finding the silvr binary")?;
+            let list: Vec<String> = todo.iter().map(|k| k.to_string()).collect();
+            let mut script = String::from("#!/bin/bash\n");
+            script += "#SBATCH --job-name=silvr-reconstruct\n";
+            script += &format!("#SBATCH --output={}/slurm-%A_%a.out\n", logs.display());
+            if let Some(p) = &c.partition {
+                script += &format!("#SBATCH --partition={p}\n");
+            }
+            if let Some(t) = &c.time {
+                script += &format!("#SBATCH --time={t}\n");
+            }
+            if let Some(g) = c.gpus {
+                script += &format!("#SBATCH --gpus-per-task={g}\n");
+            }
+            for l in &c.sbatch {
+                script += &format!("#SBATCH {l}\n");
+            }
+            script += "# One task per submap; the index is SLURM_ARRAY_TASK_ID.\n";
+            script += &format!(
+                "exec '{}' reconstruct-task '{}'\n",
+                exe.display(),
+                manifest_path.display()
+            );
+            let path = dir.join("job.sh");
+            crate::write_atomic(&path, script.as_bytes())?;
+            let array = format!("--array={}", list.join(","));
+            let out = command(
+                "sbatch",
+                &["--parsable", &array, path.to_str().context("job path")?],
+            )?;
+            let id = out.trim().split(';').next().unwrap_or("").to_string();
+            if id.is_empty() {
+                anyhow::bail!("sbatch printed no job id for {}", path.display());
+            }
+            crate::write_atomic(
+                &submitted,
+                serde_json::to_string_pretty(&serde_json::json!({ "job": id, "indices": todo }))?
+                    .as_bytes(),
+            )?;
+            eprintln!(
+                "[reconstruct] submitted slurm job {id}: {} of {} submaps ({}), script {}",
+                todo.len(),
+                m.names.len(),
+                list.join(","),
+                path.display()
+            );
+            (id, todo.clone())
+        }
+    };
+    // Follow the job until it leaves the queue.
+    let t = Instant::now();
+    let mut last = String::new();
+    loop {
+        let q = command("squeue", &["-h", "-j", &job, "-o", "%T"]).unwrap_or_default();
+        if q.trim().is_empty() {
+            break;
+        }
+        let (mut running, mut pending) = (0, 0);
+        for s in q.lines() {
+            match s.trim() {
+                "RUNNING" | "COMPLETING" => running += 1,
+                _ => pending += 1,
+            }
+        }
+        let done = indices.iter().filter(|&&k| m.done(k)).count();
+        let line = format!(
+            "{running} running, {pending} pending, {done}/{} done",
+            indices.len()
+        );
+        if line != last {
+            let eta = if done > 0 {
+                format!(
+                    ", ETA {:.0} s",
+                    t.elapsed().as_secs_f64() / done as f64 * (indices.len() - done) as f64
+                )
+            } else {
+                String::new()
+            };
+            eprintln!(
+                "[reconstruct] slurm job {job}: {line} ({:.0} s{eta})",
+                t.elapsed().as_secs_f64()
+            );
+            last = line;
+        }
+        std::thread::sleep(Duration::from_secs(1));
+    }
+    let mut failures = Vec::new();
+    for &k in &indices {
+        if m.done(k) {
+            continue;
+        }
+        let task = format!("{job}_{k}");
+        let state = command("scontrol", &["-o", "show", "job", &task])
+            .ok()
+            .and_then(|s| {
+                let f = |key: &str| {
+                    s.split_whitespace()
+                        .find_map(|w| w.strip_prefix(key))
+                        .map(String::from)
+                };
+                Some(format!(
+                    "{} (exit {})",
+                    f("JobState=")?,
+                    f("ExitCode=").unwrap_or_default()
+                ))
+            })
+            .unwrap_or_else(|| "not finished".into());
+        let log = logs.join(format!("slurm-{job}_{k}.out"));
+        let error = std::fs::read_to_string(m.error_file(&m.names[k]))
+            .map(|e| format!("{state}: {}", e.trim()))
+            .unwrap_or(state);
+        eprintln!(
+            "[reconstruct] {} failed as slurm task {task}: {error}; log {}",
+            m.names[k],
+            log.display()
+        );
+        failures.push(Failure {
+            name: m.names[k].clone(),
+            error,
+            log: Some(log),
+        });
+    }
+    Ok(failures)
 }

@@ -345,9 +345,19 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
             > 100
     );
 
-    let slurm = silvr(&["reconstruct", d, "--out", o, "--scheduler", "slurm"]);
-    assert!(!slurm.status.success());
-    assert!(String::from_utf8_lossy(&slurm.stderr).contains("only local"));
+    // The folder records how it was cut: another cut on it is refused, not mixed in.
+    let other = silvr(&["reconstruct", d, "--out", o, "--count", "3"]);
+    assert!(!other.status.success());
+    assert!(String::from_utf8_lossy(&other.stderr).contains("other options"));
+    // Other settings retrain every submap (each records what it was trained with).
+    let mut more = args.to_vec();
+    let at = more.iter().position(|a| *a == "200").unwrap();
+    more[at] = "150";
+    let said = ok(&more);
+    assert!(
+        said.contains("submap_00 (1/2): training") && said.contains("submap_01 (2/2): training"),
+        "{said}"
+    );
 }
 
 /// `silvr poses` on the micro world's SLAM prior: every image registers, the refined poses beat the

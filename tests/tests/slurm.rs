@@ -1,0 +1,159 @@
+//! `silvr reconstruct --scheduler slurm` on a real (one-node) Slurm: one array of submap tasks, the same
+//! merged map as the local scheduler's, and a task killed mid-run (`scancel`) reported with its log and
+//! resubmitted alone on the rerun, which ends with the same merged map. `scripts/test.sh` starts the
+//! one-node Slurm (`scripts/slurm.sh up`, as root) and sets `SILVR_REQUIRE_SLURM`; without it and without
+//! `sbatch` on PATH the test skips.
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use silvr_tests::build_silvr;
+
+fn ok(args: &[&str]) -> String {
+    let out = Command::new(build_silvr()).args(args).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "silvr {args:?}: {err}");
+    err
+}
+
+fn json(p: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
+}
+
+fn slurm_present() -> bool {
+    Command::new("sinfo")
+        .arg("-h")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+#[test]
+fn slurm_array_equals_local_and_a_killed_task_is_resubmitted() {
+    if !slurm_present() {
+        assert!(
+            std::env::var_os("SILVR_REQUIRE_SLURM").is_none(),
+            "SILVR_REQUIRE_SLURM is set but sinfo does not answer (scripts/slurm.sh up)"
+        );
+        eprintln!("skipping: no Slurm here (scripts/slurm.sh up starts a one-node one, as root)");
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("micro");
+    let d = data.to_str().unwrap();
+    ok(&["synth", "--preset", "micro", "--seed", "2", "--out", d]);
+    let run = |out: &Path, scheduler: &str| -> Vec<String> {
+        [
+            "reconstruct",
+            d,
+            "--out",
+            out.to_str().unwrap(),
+            "--count",
+            "3",
+            "--model",
+            "tiny",
+            "--steps",
+            "300",
+            "--rays",
+            "256",
+            "--backend",
+            "cpu",
+            "--export-rays",
+            "4096",
+            "--uncertainty-batches",
+            "1",
+            "--scheduler",
+            scheduler,
+            "--jobs",
+            "2",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
+    };
+    fn args(v: &[String]) -> Vec<&str> {
+        v.iter().map(String::as_str).collect()
+    }
+
+    // The local scheduler, two child tasks at once.
+    let local = tmp.path().join("local");
+    ok(&args(&run(&local, "local")));
+
+    // Slurm: submitted as one array; task 1 cancelled while it runs.
+    let out = tmp.path().join("slurm");
+    let argv = run(&out, "slurm");
+    let child = Command::new(build_silvr())
+        .args(&argv)
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    let job = loop {
+        assert!(t.elapsed() < Duration::from_secs(120), "no job submitted");
+        if let Ok(b) = std::fs::read(out.join("slurm/submitted.json")) {
+            let v: serde_json::Value = serde_json::from_slice(&b).unwrap();
+            break v["job"].as_str().unwrap().to_string();
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let task = format!("{job}_1");
+    loop {
+        assert!(
+            t.elapsed() < Duration::from_secs(300),
+            "task {task} never ran"
+        );
+        let q = Command::new("squeue")
+            .args(["-h", "-r", "-j", &job, "-o", "%i %T"])
+            .output()
+            .unwrap();
+        let q = String::from_utf8_lossy(&q.stdout);
+        if q.lines().any(|l| l.trim() == format!("{task} RUNNING")) {
+            break;
+        }
+        assert!(
+            !out.join("train/submap_01/task.json").exists(),
+            "task 1 finished before it could be cancelled: {q}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let cancel = Command::new("scancel").arg(&task).status().unwrap();
+    assert!(cancel.success());
+    let killed = child.wait_with_output().unwrap();
+    let said = String::from_utf8_lossy(&killed.stderr).into_owned();
+    assert!(!killed.status.success(), "{said}");
+    assert!(
+        said.contains(&format!("submap_01 failed as slurm task {task}"))
+            && said.contains("CANCELLED")
+            && said.contains(&format!("logs/slurm-{task}.out")),
+        "{said}"
+    );
+    assert!(said.contains("1 of 3 submaps failed (submap_01)"), "{said}");
+    let report = json(&out.join("report.json"));
+    assert_eq!(report["failed"][0]["name"], "submap_01", "{report}");
+    assert!(!out.join("train/submap_01/task.json").exists());
+
+    // The rerun resubmits only the cancelled task and ends with the local scheduler's map.
+    let said = ok(&args(&argv));
+    assert!(
+        said.contains("submap_00 (1/3): done earlier")
+            && said.contains("submap_02 (3/3): done earlier")
+            && said.contains(": 1 of 3 submaps (1)"),
+        "{said}"
+    );
+    let report = json(&out.join("report.json"));
+    assert!(report["failed"].as_array().unwrap().is_empty(), "{report}");
+    for s in report["per_submap"].as_array().unwrap() {
+        assert_eq!(s["backend"], "cpu", "{s}");
+    }
+    for f in ["merged.ply", "merged_unfiltered.ply"] {
+        assert!(
+            std::fs::read(local.join(f)).unwrap() == std::fs::read(out.join(f)).unwrap(),
+            "{f} differs between the local and the Slurm run"
+        );
+    }
+    let job_sh = std::fs::read_to_string(out.join("slurm/job.sh")).unwrap();
+    assert!(job_sh.contains("reconstruct-task") && job_sh.contains("#SBATCH --output="));
+}
