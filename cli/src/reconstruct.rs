@@ -1,5 +1,6 @@
-//! `silvr reconstruct`: the whole map from one dataset, the paper's end-to-end system — submaps
-//! (`silvr submaps`), then per submap train → uncertainty → filtered export (`silvr train`'s job), then
+//! `silvr reconstruct`: the whole map from one dataset, the paper's end-to-end system — the poses stage
+//! (`silvr poses`: the dataset's poses taken as the SLAM prior and refined; `--poses skip` trains on them
+//! as they are), submaps (`silvr submaps`, co-visibility by the refined model's shared tracks), then per submap train → uncertainty → filtered export (`silvr train`'s job), then
 //! the merge (`silvr_core::submap::merge`: each submap filtered by its own uncertainty, the more certain
 //! submap keeps each overlapping voxel) and, where the dataset has ground truth, the evaluation of the
 //! merged map filtered and unfiltered.
@@ -34,6 +35,11 @@ pub struct ReconstructCmd {
     /// Output folder (submaps/, train/submap_NN/, merged.ply, report.json); rerun on it to finish a job.
     #[arg(long)]
     pub out: PathBuf,
+    /// The poses stage first: `refine` (`silvr poses`: the dataset's poses are the SLAM prior, refined by
+    /// structure from motion; submaps are then cut by its shared tracks) or `skip` (train on the dataset's
+    /// poses as they are).
+    #[arg(long, default_value = "refine")]
+    pub poses: String,
     /// How submaps are cut: distance or covis.
     #[arg(long, default_value = "covis")]
     pub submaps: String,
@@ -116,6 +122,8 @@ pub struct TaskSettings {
 /// How the submaps were cut: a rerun with other options is refused rather than mixing two cuts.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CutSettings {
+    /// `refine` or `skip` (the poses stage).
+    pub poses: String,
     pub method: String,
     pub count: Option<usize>,
     pub max_images: Option<usize>,
@@ -283,7 +291,11 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
     let abs =
         |p: &Path| std::path::absolute(p).with_context(|| format!("resolving {}", p.display()));
     let out = abs(&c.out)?;
+    if !["refine", "skip"].contains(&c.poses.as_str()) {
+        anyhow::bail!("--poses {}: expected refine or skip", c.poses);
+    }
     let cut = CutSettings {
+        poses: c.poses.clone(),
         method: c.submaps.clone(),
         count: c.count,
         max_images: c.max_images,
@@ -301,6 +313,59 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             );
         }
     }
+    // The poses stage: the dataset's poses refined (written as a dataset under OUT/poses, renamed into
+    // place when complete, so its report marks it done), and the Sim(3) from the refined poses back to
+    // the dataset's, which maps the merged map into the frame its ground truth is in.
+    let (cut_from, poses_block, alignment) = if c.poses == "refine" {
+        let dir = out.join("poses");
+        let report: serde_json::Value = if dir.join("report.json").is_file() {
+            eprintln!("[reconstruct] poses: reusing {}", dir.display());
+            serde_json::from_slice(&std::fs::read(dir.join("report.json"))?)
+                .with_context(|| format!("reading {}/report.json", dir.display()))?
+        } else {
+            eprintln!("[reconstruct] poses: refining the dataset's poses (silvr poses)");
+            crate::poses::run(&crate::poses::PosesArgs {
+                dataset: c.dataset.clone(),
+                out: dir.clone(),
+                gt: Some(c.dataset.clone()),
+                refine_extrinsics: false,
+                max_features: 4096,
+                peak_threshold: None,
+                downscale: 1,
+                quiet: true,
+            })?
+        };
+        let p = &report["poses"];
+        eprintln!(
+            "[reconstruct] poses: {}/{} images registered, reprojection RMSE {:.3} px on the prior → {:.3} px",
+            p["registered"],
+            p["images"],
+            p["rmse_prior_px"].as_f64().unwrap_or(f64::NAN),
+            p["rmse_px"].as_f64().unwrap_or(f64::NAN)
+        );
+        let align: silvr_core::eval::poses::PoseErrors =
+            serde_json::from_value(report["errors"]["refined"].clone()).with_context(|| {
+                format!(
+                    "{}/report.json has no refined-vs-dataset errors",
+                    dir.display()
+                )
+            })?;
+        let block = serde_json::json!({
+            "dir": dir,
+            "registered": p["registered"],
+            "images": p["images"],
+            "rmse_px": p["rmse_px"],
+            "rmse_prior_px": p["rmse_prior_px"],
+            "moved_from_dataset": report["errors"]["refined"],
+        });
+        (dir, block, Some(align.alignment))
+    } else {
+        (
+            c.dataset.clone(),
+            serde_json::json!({ "skipped": true }),
+            None,
+        )
+    };
     let subs = out.join("submaps");
     let plan: serde_json::Value = if subs.join("manifest.json").is_file() {
         eprintln!("[reconstruct] submaps: reusing {}", subs.display());
@@ -308,7 +373,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             .with_context(|| format!("reading {}/manifest.json", subs.display()))?
     } else {
         let p = crate::submaps::run(
-            &c.dataset,
+            &cut_from,
             &subs,
             &c.submaps,
             c.max_images,
@@ -422,8 +487,12 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
     let evaluation = if gt.join("gt/cloud.ply").is_file() {
         let mut table = serde_json::Map::new();
         let mut rows = Vec::new();
+        let opts = GeometryOptions {
+            reconstruction_to_gt: alignment.map(|a| a.to_mat4()),
+            ..GeometryOptions::default()
+        };
         for (key, path) in [("unfiltered", &merged_all_path), ("filtered", &merged_path)] {
-            let ev = eval::evaluate_files(path, &gt, &GeometryOptions::default())?;
+            let ev = eval::evaluate_files(path, &gt, &opts)?;
             rows.push((key, ev.clone()));
             table.insert(key.into(), serde_json::to_value(&ev)?);
         }
@@ -436,6 +505,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         "dataset": m.dataset,
         "scheduler": c.scheduler,
         "manifest": manifest_path,
+        "poses": poses_block,
         "submaps": plan,
         "per_submap": per_submap,
         "merge": { "rule": "per 0.2 m voxel, the submap with the lowest median log_std_combined there keeps its points", "voxel_m": merge_voxel },

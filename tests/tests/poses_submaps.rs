@@ -271,6 +271,8 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
         d,
         "--out",
         o,
+        "--poses",
+        "skip",
         "--count",
         "2",
         "--model",

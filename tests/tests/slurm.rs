@@ -1,5 +1,5 @@
-//! `silvr reconstruct --scheduler slurm` on a real (one-node) Slurm: one array of submap tasks, the same
-//! merged map as the local scheduler's, and a task killed mid-run (`scancel`) reported with its log and
+//! `silvr reconstruct --scheduler slurm` on a real (one-node) Slurm, after the poses stage: one array of
+//! submap tasks, the same merged map as the local scheduler's (the poses stage is deterministic too), and a task killed mid-run (`scancel`) reported with its log and
 //! resubmitted alone on the rerun, which ends with the same merged map. `scripts/test.sh` starts the
 //! one-node Slurm (`scripts/slurm.sh up`, as root) and sets `SILVR_REQUIRE_SLURM`; without it and without
 //! `sbatch` on PATH the test skips.
@@ -145,6 +145,10 @@ fn slurm_array_equals_local_and_a_killed_task_is_resubmitted() {
     );
     let report = json(&out.join("report.json"));
     assert!(report["failed"].as_array().unwrap().is_empty(), "{report}");
+    // The poses stage ran first (once: the rerun reused it), and the cut used its shared tracks.
+    assert_eq!(report["poses"]["registered"], 36, "{report}");
+    assert!(said.contains("poses: reusing"), "{said}");
+    assert_eq!(report["submaps"]["covis_source"], "tracks", "{report}");
     for s in report["per_submap"].as_array().unwrap() {
         assert_eq!(s["backend"], "cpu", "{s}");
     }
