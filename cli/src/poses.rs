@@ -248,6 +248,13 @@ fn summarise(report: &Value) {
         p["rmse_prior_px"].as_f64().unwrap_or(f64::NAN),
         p["rmse_px"].as_f64().unwrap_or(f64::NAN)
     );
+    if let Some(n) = p["components"].as_u64().filter(|&n| n > 1) {
+        eprintln!(
+            "[poses] warning: the match graph falls apart into {n} parts: between them only the SLAM \
+             odometry ties the keyframes (their relative poses there are the prior's); see the images \
+             not registered above, or lower --peak-threshold"
+        );
+    }
     if let Some(stages) = p["stages"].as_array() {
         let s: Vec<String> = stages
             .iter()
