@@ -57,22 +57,24 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
                 .join(", ")
         );
     }
-    let mut full_models = Vec::with_capacity(present.len());
-    let frames: Vec<PoseFrame> = present
+    // Each frame at the size its features are found at, and its full-size camera (the COLMAP model's).
+    let (full_models, frames): (Vec<CameraModel>, Vec<PoseFrame>) = present
         .iter()
         .map(|&i| {
             let fr = &ns[i];
             let (model, prior) = fr.camera(&json)?;
-            full_models.push(model);
-            Ok(PoseFrame {
+            let frame = PoseFrame {
                 name: fr.file_path.clone(),
                 model: model.downscaled(f),
                 prior,
                 keyframe: fr.keyframe,
                 camera: fr.camera.clone(),
-            })
+            };
+            Ok((model, frame))
         })
-        .collect::<Result<_, dataset::DatasetError>>()?;
+        .collect::<Result<Vec<_>, dataset::DatasetError>>()?
+        .into_iter()
+        .unzip();
     if a.out.exists() {
         anyhow::bail!("{} exists; choose a new folder", a.out.display());
     }
@@ -201,8 +203,8 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
         None => None,
     };
 
-    let tmp = staging(&a.out)?;
-    let prefix = prefix_to(&root_dir, &a.out)?;
+    let tmp = crate::submaps::staging(&a.out)?;
+    let prefix = crate::submaps::prefix_to(&root_dir, &a.out)?;
     // transforms.json: the input's, poses replaced, paths pointing back at the dataset.
     let mut by_frame: Vec<Option<silvr_core::geometry::Se3>> = vec![None; ns.len()];
     for (k, &i) in present.iter().enumerate() {
@@ -363,34 +365,6 @@ fn colmap_model(
     })
 }
 
-/// `OUT`'s staging folder (`.OUT.partial` beside it, emptied): written in full, then renamed to `OUT`.
-fn staging(out: &Path) -> Result<PathBuf> {
-    let parent = out
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
-    let tmp = parent.join(format!(
-        ".{}.partial",
-        out.file_name()
-            .map(|n| n.to_string_lossy())
-            .unwrap_or_default()
-    ));
-    let _ = std::fs::remove_dir_all(&tmp);
-    std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
-    Ok(tmp)
-}
-
-/// The path from folder `out` back to `root_dir`, as a prefix for relative paths (`""` or `"a/b/"`).
-fn prefix_to(root_dir: &Path, out: &Path) -> Result<String> {
-    let abs = |p: &Path| -> Result<PathBuf> {
-        std::path::absolute(p).with_context(|| format!("resolving {}", p.display()))
-    };
-    let rel = crate::submaps::relative_path(&abs(root_dir)?, &abs(out)?);
-    let s = rel.to_string_lossy().replace('\\', "/");
-    Ok(if s.is_empty() { s } else { format!("{s}/") })
-}
-
 /// A transforms.json's text with frame i's pose replaced by `poses[i]` (kept where `None`) and every
 /// relative file path prefixed (so the file works from another folder); everything else as it was.
 fn rewrite_transforms(
@@ -403,33 +377,17 @@ fn rewrite_transforms(
         for (i, f) in list.iter_mut().enumerate() {
             let Some(o) = f.as_object_mut() else { continue };
             if let Some(pose) = poses.get(i).copied().flatten() {
-                let m = silvr_core::camera::opencv_to_opengl_c2w(pose.to_mat4());
-                let rows: Vec<Value> = [m.row(0), m.row(1), m.row(2), m.row(3)]
-                    .iter()
-                    .map(|r| Value::from(r.to_array().to_vec()))
-                    .collect();
-                o.insert("transform_matrix".into(), Value::from(rows));
+                let rows = dataset::transform_matrix_rows(&pose);
+                o.insert("transform_matrix".into(), serde_json::to_value(rows)?);
             }
-            for k in [
-                "file_path",
-                "depth_file_path",
-                "normal_file_path",
-                "sky_mask_path",
-            ] {
-                if let Some(p) = o.get(k).and_then(Value::as_str).map(String::from) {
-                    // Absolute paths already reach their file from anywhere.
-                    if !Path::new(&p).is_absolute() {
-                        o.insert(k.into(), Value::from(format!("{prefix}{p}")));
-                    }
-                }
-            }
+            dataset::prefix_frame_paths(o, prefix);
         }
     }
     for list in ["train_filenames", "val_filenames"] {
         if let Some(arr) = root.get_mut(list).and_then(Value::as_array_mut) {
             for v in arr.iter_mut() {
-                if let Some(s) = v.as_str().filter(|s| !Path::new(s).is_absolute()) {
-                    *v = Value::from(format!("{prefix}{s}"));
+                if let Some(s) = v.as_str() {
+                    *v = Value::from(dataset::prefixed(prefix, s));
                 }
             }
         }
@@ -480,25 +438,30 @@ pub fn perturb(
     };
     // A rig moves as one: frames of one keyframe (the `keyframe` field) share their keyframe's error,
     // as in a SLAM trajectory; frames without one are perturbed each on its own.
-    let mut groups: Vec<(Option<u64>, Vec<usize>)> = Vec::new();
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    let mut group_of_keyframe: std::collections::HashMap<usize, usize> = Default::default();
     for (i, f) in ns.iter().enumerate() {
-        let k = f.keyframe.map(|k| k as u64);
-        match groups.iter_mut().find(|(g, _)| k.is_some() && *g == k) {
-            Some((_, members)) => members.push(i),
-            None => groups.push((k, vec![i])),
+        match f.keyframe.and_then(|k| group_of_keyframe.get(&k).copied()) {
+            Some(g) => groups[g].push(i),
+            None => {
+                if let Some(k) = f.keyframe {
+                    group_of_keyframe.insert(k, groups.len());
+                }
+                groups.push(vec![i]);
+            }
         }
     }
-    let bases: Vec<silvr_core::geometry::Se3> = groups.iter().map(|(_, m)| exact[m[0]]).collect();
+    let bases: Vec<silvr_core::geometry::Se3> = groups.iter().map(|m| exact[m[0]]).collect();
     let (moved_bases, _) = silvr_core::synthetic::prior::prior_trajectory(&bases, &params, seed);
     let mut moved = exact.clone();
-    for ((_, members), (b, nb)) in groups.iter().zip(bases.iter().zip(&moved_bases)) {
+    for (members, (b, nb)) in groups.iter().zip(bases.iter().zip(&moved_bases)) {
         let delta = *nb * b.inverse();
         for &i in members {
             moved[i] = delta * exact[i];
         }
     }
-    let tmp = staging(out)?;
-    let prefix = prefix_to(&root_dir, out)?;
+    let tmp = crate::submaps::staging(out)?;
+    let prefix = crate::submaps::prefix_to(&root_dir, out)?;
     let moved: Vec<_> = moved.into_iter().map(Some).collect();
     let root = rewrite_transforms(&text, &moved, &prefix)?;
     dataset::write_atomic(

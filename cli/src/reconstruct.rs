@@ -165,6 +165,18 @@ impl Manifest {
                 .is_some_and(|s| s == self.settings)
     }
 
+    /// Prints the submaps not in `todo` as done earlier.
+    fn say_done(&self, todo: &[usize]) {
+        for k in (0..self.names.len()).filter(|k| !todo.contains(k)) {
+            eprintln!(
+                "[reconstruct] {} ({}/{}): done earlier",
+                self.names[k],
+                k + 1,
+                self.names.len()
+            );
+        }
+    }
+
     fn error_file(&self, name: &str) -> PathBuf {
         self.out.join("train").join(format!("{name}.error.txt"))
     }
@@ -470,8 +482,10 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
     let merged_all = silvr_core::submap::merge(&unfiltered, merge_voxel);
     let merged_path = out.join("merged.ply");
     let merged_all_path = out.join("merged_unfiltered.ply");
-    write_ply_atomic(&merged_path, &merged)?;
-    write_ply_atomic(&merged_all_path, &merged_all)?;
+    // `write_ply` writes atomically: a kill never leaves half a merged map.
+    for (path, cloud) in [(&merged_path, &merged), (&merged_all_path, &merged_all)] {
+        write_ply(path, cloud).with_context(|| format!("writing {}", path.display()))?;
+    }
     eprintln!(
         "[reconstruct] merged {} submaps: {} points ({} before the uncertainty filter) → {}",
         filtered.len(),
@@ -536,13 +550,6 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
     Ok(())
 }
 
-/// A PLY written under a temporary name, then renamed (a kill never leaves half a merged map).
-fn write_ply_atomic(path: &Path, cloud: &silvr_core::pointcloud::PointCloud) -> Result<()> {
-    let tmp = path.with_extension("ply.partial");
-    write_ply(&tmp, cloud).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("renaming {}", tmp.display()))
-}
-
 /// The local scheduler: in process one after another, or `--jobs N` child processes at once.
 fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<Failure>> {
     let mut failures = Vec::new();
@@ -566,14 +573,7 @@ fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
     let logs = m.out.join("logs");
     std::fs::create_dir_all(&logs)?;
     let todo: Vec<usize> = (0..m.names.len()).filter(|&k| !m.done(k)).collect();
-    for k in (0..m.names.len()).filter(|k| !todo.contains(k)) {
-        eprintln!(
-            "[reconstruct] {} ({}/{}): done earlier",
-            m.names[k],
-            k + 1,
-            m.names.len()
-        );
-    }
+    m.say_done(&todo);
     let mut queue = todo.into_iter();
     let mut running: Vec<(usize, std::process::Child, PathBuf)> = Vec::new();
     loop {
@@ -659,14 +659,7 @@ fn slurm(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
     std::fs::create_dir_all(&logs)?;
     let submitted = dir.join("submitted.json");
     let todo: Vec<usize> = (0..m.names.len()).filter(|&k| !m.done(k)).collect();
-    for k in (0..m.names.len()).filter(|k| !todo.contains(k)) {
-        eprintln!(
-            "[reconstruct] {} ({}/{}): done earlier",
-            m.names[k],
-            k + 1,
-            m.names.len()
-        );
-    }
+    m.say_done(&todo);
     if todo.is_empty() {
         return Ok(Vec::new());
     }

@@ -68,31 +68,9 @@ pub fn run(
     if out.exists() {
         anyhow::bail!("{} exists; choose a new folder", out.display());
     }
-    let parent = out
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
-    let tmp = parent.join(format!(
-        ".{}.partial",
-        out.file_name()
-            .map(|n| n.to_string_lossy())
-            .unwrap_or_default()
-    ));
-    let _ = std::fs::remove_dir_all(&tmp);
+    let tmp = staging(out)?;
     // The way from a submap's folder (out/submap_k/) back to the dataset.
-    let prefix = {
-        let abs = |p: &Path| -> Result<PathBuf> {
-            std::path::absolute(p).with_context(|| format!("resolving {}", p.display()))
-        };
-        let rel = relative_path(&abs(&root_dir)?, &abs(out)?.join("submap_00"));
-        let s = rel.to_string_lossy().replace('\\', "/");
-        if s.is_empty() {
-            String::new()
-        } else {
-            format!("{s}/")
-        }
-    };
+    let prefix = prefix_to(&root_dir, &out.join("submap_00"))?;
     for sub in &plan.submaps {
         let dir = tmp.join(&sub.name);
         std::fs::create_dir_all(&dir)?;
@@ -152,4 +130,32 @@ pub fn relative_path(target: &Path, base: &Path) -> PathBuf {
         rel.push(c.as_os_str());
     }
     rel
+}
+
+/// `OUT`'s staging folder (`.OUT.partial` beside it, emptied): written in full, then renamed to `OUT`.
+pub(crate) fn staging(out: &Path) -> Result<PathBuf> {
+    let parent = out
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+    let tmp = parent.join(format!(
+        ".{}.partial",
+        out.file_name()
+            .map(|n| n.to_string_lossy())
+            .unwrap_or_default()
+    ));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+    Ok(tmp)
+}
+
+/// The path from folder `out` back to `root_dir`, as a prefix for relative paths (`""` or `"a/b/"`).
+pub(crate) fn prefix_to(root_dir: &Path, out: &Path) -> Result<String> {
+    let abs = |p: &Path| -> Result<PathBuf> {
+        std::path::absolute(p).with_context(|| format!("resolving {}", p.display()))
+    };
+    let rel = relative_path(&abs(root_dir)?, &abs(out)?);
+    let s = rel.to_string_lossy().replace('\\', "/");
+    Ok(if s.is_empty() { s } else { format!("{s}/") })
 }

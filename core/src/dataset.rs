@@ -47,6 +47,40 @@ fn fmt_err(path: &Path, detail: impl Into<String>) -> DatasetError {
     }
 }
 
+/// The per-frame file keys of a transforms.json: image, lidar depth, normals, sky mask.
+pub const FRAME_FILE_KEYS: [&str; 4] = [
+    "file_path",
+    "depth_file_path",
+    "normal_file_path",
+    "sky_mask_path",
+];
+
+/// `prefix` + `path` for a relative path (the way from another folder back to the file); an absolute path
+/// already reaches its file and is returned as it is.
+pub fn prefixed(prefix: &str, path: &str) -> String {
+    if Path::new(path).is_absolute() {
+        path.to_string()
+    } else {
+        format!("{prefix}{path}")
+    }
+}
+
+/// A frame's `transform_matrix` (nerfstudio: camera → world, OpenGL axes, rows) of an OpenCV-axes
+/// `T_world_cam`.
+pub fn transform_matrix_rows(t_world_cam: &Se3) -> [[f64; 4]; 4] {
+    let m: DMat4 = opencv_to_opengl_c2w(t_world_cam.to_mat4());
+    [m.row(0), m.row(1), m.row(2), m.row(3)].map(|r| r.to_array())
+}
+
+/// Every file path of one frame of a transforms.json ([`FRAME_FILE_KEYS`]) [`prefixed`].
+pub fn prefix_frame_paths(frame: &mut serde_json::Map<String, Value>, prefix: &str) {
+    for k in FRAME_FILE_KEYS {
+        if let Some(p) = frame.get(k).and_then(Value::as_str).map(String::from) {
+            frame.insert(k.into(), Value::from(prefixed(prefix, &p)));
+        }
+    }
+}
+
 /// Writes `bytes` to `path` through a temporary file in the same folder and a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), DatasetError> {
     if let Some(dir) = path.parent() {
@@ -357,8 +391,7 @@ pub struct NsFrame {
 impl NsFrame {
     /// A frame from our camera model and an OpenCV-axes `T_world_cam`.
     pub fn new(file_path: String, model: &CameraModel, t_world_cam: &Se3) -> NsFrame {
-        let m: DMat4 = opencv_to_opengl_c2w(t_world_cam.to_mat4());
-        let rows = [m.row(0), m.row(1), m.row(2), m.row(3)].map(|r| r.to_array());
+        let rows = transform_matrix_rows(t_world_cam);
         let (camera_model, k) = match model.distortion {
             Distortion::None => ("PINHOLE", [0.0; 6]),
             Distortion::RadTan { k1, k2, p1, p2, k3 } => ("OPENCV", [k1, k2, k3, 0.0, p1, p2]),

@@ -692,7 +692,6 @@ pub fn submap_transforms(
 ) -> serde_json::Value {
     use serde_json::Value;
     let mut out = root.clone();
-    let join = |p: &str| format!("{prefix}{p}");
     let all = root["frames"].as_array().cloned().unwrap_or_default();
     let mut names = std::collections::HashSet::new();
     let frames: Vec<Value> = sub
@@ -701,19 +700,10 @@ pub fn submap_transforms(
         .filter_map(|&i| all.get(i).cloned())
         .map(|mut f| {
             if let Some(o) = f.as_object_mut() {
-                for k in [
-                    "file_path",
-                    "depth_file_path",
-                    "normal_file_path",
-                    "sky_mask_path",
-                ] {
-                    if let Some(p) = o.get(k).and_then(Value::as_str).map(String::from) {
-                        if k == "file_path" {
-                            names.insert(p.clone());
-                        }
-                        o.insert(k.into(), Value::from(join(&p)));
-                    }
+                if let Some(p) = o.get("file_path").and_then(Value::as_str) {
+                    names.insert(p.to_string());
                 }
+                crate::dataset::prefix_frame_paths(o, prefix);
             }
             f
         })
@@ -726,7 +716,7 @@ pub fn submap_transforms(
                     .iter()
                     .filter_map(Value::as_str)
                     .filter(|n| names.contains(*n))
-                    .map(|n| Value::from(join(n)))
+                    .map(|n| Value::from(crate::dataset::prefixed(prefix, n)))
                     .collect();
                 o.insert(list.into(), Value::from(kept));
             }
