@@ -2,7 +2,8 @@
 //! submap tasks, the same merged map as the local scheduler's (the poses stage is deterministic too), and a task killed mid-run (`scancel`) reported with its log and
 //! resubmitted alone on the rerun, which ends with the same merged map. `scripts/test.sh` starts the
 //! one-node Slurm (`scripts/slurm.sh up`, as root) and sets `SILVR_REQUIRE_SLURM`; without it and without
-//! `sbatch` on PATH the test skips.
+//! `sbatch` on PATH the test skips. Submaps train on the CPU reference (`--backend cpu`, asserted per
+//! submap): bit-for-bit reproducible, which the equality needs; this checks scheduling, not the engine.
 
 use std::path::Path;
 use std::process::{Command, Stdio};
