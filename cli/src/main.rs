@@ -16,6 +16,7 @@ mod backend;
 mod ingest;
 mod poses;
 mod reconstruct;
+mod renders;
 mod serve;
 mod submaps;
 mod train;
@@ -1307,13 +1308,13 @@ fn report_json(r: &GeometryReport) -> serde_json::Value {
 
 pub(crate) fn print_table(rows: &[(&str, &GeometryReport)]) {
     println!(
-        "{:<12} {:>10} {:>10} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "{:<20} {:>10} {:>10} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
         "method", "acc [m]", "comp [m]", "P@5cm", "R@5cm", "F@5cm", "P@10cm", "R@10cm", "F@10cm"
     );
     for (name, r) in rows {
         let g = |k: &str| r.per_threshold.get(k).copied().unwrap_or(f64::NAN);
         println!(
-            "{:<12} {:>10.4} {:>10.4} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3}",
+            "{:<20} {:>10.4} {:>10.4} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3}",
             name,
             r.accuracy_m,
             r.completeness_m,

@@ -16,7 +16,11 @@
 //! process by default); `slurm` writes `slurm/job.sh`, submits one array of the missing tasks
 //! (`sbatch --array`), follows it (`squeue`, `scontrol`), and reports failed tasks with their logs. Any
 //! other scheduler can run the same manifest: one `reconstruct-task` per index, then `reconstruct` again
-//! to merge. Blended renders are the rest of issue 19.
+//! to merge.
+//!
+//! After the merge: the evaluation (merged map filtered and unfiltered, its boundary zone on its own, and
+//! with `--single` one field over all images, trained as one more task, as the baseline) and blended
+//! renders of a camera path at the submap boundaries (`crate::renders`, `OUT/renders`).
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -90,6 +94,20 @@ pub struct ReconstructCmd {
     pub uncertainty_batches: usize,
     #[arg(long, default_value_t = 1024)]
     pub uncertainty_rays: usize,
+    /// Also train one field over all images (a task like the submaps'): the baseline the merged map is
+    /// compared with in the report.
+    #[arg(long)]
+    pub single: bool,
+    /// Blended renders: at most this many boundary views of the camera path (0: none).
+    #[arg(long, default_value_t = 12)]
+    pub renders: usize,
+    /// Blended renders: a second submap joins when its cameras are this close (m; SiLVR's 2 m).
+    #[arg(long, default_value_t = silvr_core::submap::blend::BLEND_RADIUS_M)]
+    pub blend_radius: f64,
+    /// The boundary zone the report scores on its own: merged-map points whose two nearest submaps'
+    /// cameras are within this many metres of the same distance.
+    #[arg(long, default_value_t = 2.0)]
+    pub boundary: f64,
 }
 
 /// `silvr reconstruct-task`: one submap of a reconstruction, from its manifest.
@@ -136,9 +154,19 @@ pub struct Manifest {
     pub dataset: PathBuf,
     pub out: PathBuf,
     pub cut: CutSettings,
+    /// The submaps: tasks `0..names.len()`.
     pub names: Vec<String>,
     pub settings: TaskSettings,
+    /// The dataset the submaps were cut from (the refined poses, or the dataset itself).
+    #[serde(default)]
+    pub trained_from: PathBuf,
+    /// Whether task `names.len()` trains one field over all of `trained_from` (`train/single`).
+    #[serde(default)]
+    pub single: bool,
 }
+
+/// The single-field baseline's task name.
+pub const SINGLE: &str = "single";
 
 impl Manifest {
     fn read(path: &Path) -> Result<Manifest> {
@@ -155,9 +183,26 @@ impl Manifest {
         self.out.join("train").join(name)
     }
 
-    /// Whether submap `k` finished with the current settings.
+    /// Tasks: the submaps, then the single field when asked for.
+    fn tasks(&self) -> usize {
+        self.names.len() + self.single as usize
+    }
+
+    fn name(&self, k: usize) -> &str {
+        self.names.get(k).map_or(SINGLE, String::as_str)
+    }
+
+    /// What task `k` trains on.
+    fn task_dataset(&self, k: usize) -> PathBuf {
+        match self.names.get(k) {
+            Some(n) => self.out.join("submaps").join(n),
+            None => self.trained_from.clone(),
+        }
+    }
+
+    /// Whether task `k` finished with the current settings.
     fn done(&self, k: usize) -> bool {
-        let dir = self.dir(&self.names[k]);
+        let dir = self.dir(self.name(k));
         dir.join("train.json").is_file()
             && std::fs::read(dir.join("task.json"))
                 .ok()
@@ -167,12 +212,12 @@ impl Manifest {
 
     /// Prints the submaps not in `todo` as done earlier.
     fn say_done(&self, todo: &[usize]) {
-        for k in (0..self.names.len()).filter(|k| !todo.contains(k)) {
+        for k in (0..self.tasks()).filter(|k| !todo.contains(k)) {
             eprintln!(
                 "[reconstruct] {} ({}/{}): done earlier",
-                self.names[k],
+                self.name(k),
                 k + 1,
-                self.names.len()
+                self.tasks()
             );
         }
     }
@@ -195,12 +240,12 @@ pub fn task(c: &TaskCmd) -> Result<()> {
             .parse()
             .context("the task index in the environment is not a number")?,
     };
-    if index >= m.names.len() {
+    if index >= m.tasks() {
         anyhow::bail!(
-            "--index {index}: {} lists {} submaps (0..{})",
+            "--index {index}: {} lists {} tasks (0..{})",
             c.manifest.display(),
-            m.names.len(),
-            m.names.len()
+            m.tasks(),
+            m.tasks()
         );
     }
     run_task(&m, index, true)
@@ -209,24 +254,20 @@ pub fn task(c: &TaskCmd) -> Result<()> {
 /// One submap: train → uncertainty → filtered export into `train/NAME`, then its `task.json`. A failure
 /// is written to `train/NAME.error.txt` (and returned).
 fn run_task(m: &Manifest, k: usize, say: bool) -> Result<()> {
-    let name = &m.names[k];
+    let name = m.name(k);
     let dir = m.dir(name);
     if m.done(k) {
         if say {
             eprintln!(
                 "[reconstruct] {name} ({}/{}): done earlier",
                 k + 1,
-                m.names.len()
+                m.tasks()
             );
         }
         return Ok(());
     }
     if say {
-        eprintln!(
-            "[reconstruct] {name} ({}/{}): training",
-            k + 1,
-            m.names.len()
-        );
+        eprintln!("[reconstruct] {name} ({}/{}): training", k + 1, m.tasks());
     }
     // A killed or outdated run leaves a folder: start that submap again.
     let _ = std::fs::remove_dir_all(&dir);
@@ -238,7 +279,7 @@ fn run_task(m: &Manifest, k: usize, say: bool) -> Result<()> {
             .parse()
             .map_err(|e: String| anyhow::anyhow!("--mode: {e}"))?;
         train::run(&TrainArgs {
-            dataset: m.out.join("submaps").join(name),
+            dataset: m.task_dataset(k),
             mode,
             steps: s.steps,
             rays: s.rays,
@@ -422,10 +463,12 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             uncertainty_rays: c.uncertainty_rays,
             version: env!("CARGO_PKG_VERSION").to_string(),
         },
+        trained_from: abs(&cut_from)?,
+        single: c.single,
     };
     crate::write_atomic(&manifest_path, serde_json::to_string_pretty(&m)?.as_bytes())?;
 
-    let started: Vec<bool> = (0..names.len()).map(|k| !m.done(k)).collect();
+    let started: Vec<bool> = (0..m.tasks()).map(|k| !m.done(k)).collect();
     let failures = match c.scheduler.as_str() {
         "slurm" => slurm(c, &m, &manifest_path)?,
         _ => local(c, &m, &manifest_path)?,
@@ -498,20 +541,124 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         .parent()
         .unwrap_or(Path::new("."))
         .to_path_buf();
+    let single_dir = m.dir(SINGLE);
+    let single_done = m.single && m.done(m.names.len());
     let evaluation = if gt.join("gt/cloud.ply").is_file() {
-        let mut table = serde_json::Map::new();
-        let mut rows = Vec::new();
         let opts = GeometryOptions {
             reconstruction_to_gt: alignment.map(|a| a.to_mat4()),
             ..GeometryOptions::default()
         };
-        for (key, path) in [("unfiltered", &merged_all_path), ("filtered", &merged_path)] {
-            let ev = eval::evaluate_files(path, &gt, &opts)?;
-            rows.push((key, ev.clone()));
-            table.insert(key.into(), serde_json::to_value(&ev)?);
+        let mut clouds: Vec<(&str, PathBuf)> = Vec::new();
+        if single_done {
+            clouds.push(("single_unfiltered", single_dir.join("points.ply")));
+            if single_dir.join("points_filtered.ply").is_file() {
+                clouds.push(("single_filtered", single_dir.join("points_filtered.ply")));
+            }
         }
-        crate::print_table(&rows.iter().map(|(k, r)| (*k, r)).collect::<Vec<_>>());
+        clouds.push(("unfiltered", merged_all_path.clone()));
+        clouds.push(("filtered", merged_path.clone()));
+        let mut rows = Vec::new();
+        let mut table = serde_json::Map::new();
+        for (key, path) in &clouds {
+            let ev = eval::evaluate_files(path, &gt, &opts)?;
+            rows.push((key.to_string(), ev.clone()));
+            table.insert(key.to_string(), serde_json::to_value(&ev)?);
+        }
+        // The boundary zone of each merged map scored on its own: points near the bisector of two
+        // submaps' cameras, where a cut shows as a seam.
+        let cameras: Vec<Vec<glam::DVec3>> = names
+            .iter()
+            .map(|n| crate::renders::training_cameras(&subs.join(n)))
+            .collect::<Result<_>>()?;
+        for (key, cloud) in [
+            ("boundary_unfiltered", &merged_all),
+            ("boundary_filtered", &merged),
+        ] {
+            let mask = silvr_core::submap::near_boundary(&cloud.positions, &cameras, c.boundary);
+            let idx: Vec<usize> = (0..mask.len()).filter(|&i| mask[i]).collect();
+            if idx.is_empty() {
+                continue;
+            }
+            let ev = eval::evaluate_cloud(&cloud.select(&idx), &gt, &opts)?.report;
+            rows.push((key.to_string(), ev.clone()));
+            table.insert(key.to_string(), serde_json::to_value(&ev)?);
+        }
+        crate::print_table(
+            &rows
+                .iter()
+                .map(|(k, r)| (k.as_str(), r))
+                .collect::<Vec<_>>(),
+        );
+        let get = |k: &str| rows.iter().find(|(n, _)| n == k).map(|(_, r)| r);
+        if let (Some(u), Some(f)) = (get("unfiltered"), get("filtered")) {
+            let recall = |r: &silvr_core::eval::GeometryReport| {
+                r.thresholds
+                    .iter()
+                    .find(|t| (t.threshold_m - 0.10).abs() < 1e-9)
+                    .map_or(f64::NAN, |t| t.recall)
+            };
+            let claims = serde_json::json!({
+                "filter_accuracy_gain": 1.0 - f.accuracy_m / u.accuracy_m,
+                "filter_completeness_loss_at_10cm": 1.0 - recall(f) / recall(u),
+                "claim": "the paper: filtering improves merged accuracy by ≥ 30 % at ≤ 10 % completeness loss (completeness: GT points within 10 cm)",
+                "merged_vs_single_accuracy_m": get("single_unfiltered").map(|s| [s.accuracy_m, u.accuracy_m]),
+                "boundary_accuracy_m": get("boundary_filtered").map(|b| b.accuracy_m),
+                "boundary_radius_m": c.boundary,
+            });
+            eprintln!(
+                "[reconstruct] uncertainty filter: accuracy {:+.1} %, completeness (GT within 10 cm) {:+.1} %",
+                100.0 * (f.accuracy_m / u.accuracy_m - 1.0),
+                100.0 * (recall(f) / recall(u) - 1.0)
+            );
+            table.insert("claims".into(), claims);
+        }
         serde_json::Value::Object(table)
+    } else {
+        serde_json::Value::Null
+    };
+    // Blended renders along the camera path (skipped while a task is missing: the map is incomplete).
+    let renders = if c.renders > 0 && failures.is_empty() {
+        let key = crate::renders::RenderKey {
+            views: c.renders,
+            radius_m: c.blend_radius,
+            submaps: names.clone(),
+            settings: serde_json::to_value(&m.settings)?,
+        };
+        let retrained = started.iter().any(|&s| s);
+        let report = match crate::renders::reuse(&out, &key).filter(|_| !retrained) {
+            Some(r) => {
+                eprintln!(
+                    "[reconstruct] renders: reusing {}",
+                    out.join("renders").display()
+                );
+                r
+            }
+            None => {
+                eprintln!(
+                    "[reconstruct] renders: blending submaps along the camera path (up to {} boundary views)",
+                    c.renders
+                );
+                crate::renders::run(&crate::renders::RenderJob {
+                    out: &out,
+                    dataset: &c.dataset,
+                    trained_from: &cut_from,
+                    submaps: names.iter().map(|n| (n.clone(), m.dir(n))).collect(),
+                    alignment,
+                    backend: &c.backend,
+                    key,
+                })?
+            }
+        };
+        eprintln!(
+            "[reconstruct] renders: {} boundary views of {} ({}): PSNR nearest only {:.2} dB, SiLVR blend {:.2} dB, Block-NeRF blend {:.2} dB",
+            report.views.len(),
+            report.path_views,
+            report.path,
+            report.mean_psnr_nearest,
+            report.mean_psnr_blended_silvr,
+            report.mean_psnr_blended_idw
+        );
+        serde_json::to_value(&report)?
     } else {
         serde_json::Value::Null
     };
@@ -527,6 +674,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         "merged_points": merged.len(),
         "merged_unfiltered_points": merged_all.len(),
         "evaluation": evaluation,
+        "renders": renders,
         "seconds": total.elapsed().as_secs_f64(),
     });
     let path = out.join("report.json");
@@ -540,9 +688,10 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
     if !failures.is_empty() {
         let names: Vec<&str> = failures.iter().map(|f| f.name.as_str()).collect();
         anyhow::bail!(
-            "{} of {} submaps failed ({}): the map above is merged without them; fix the cause and rerun on {} to train only those",
+            "{} of {} {} failed ({}): the map above is merged without them; fix the cause and rerun on {} to train only those",
             failures.len(),
-            m.names.len(),
+            m.tasks(),
+            if m.single { "tasks" } else { "submaps" },
             names.join(", "),
             out.display()
         );
@@ -554,16 +703,16 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
 fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<Failure>> {
     let mut failures = Vec::new();
     if c.jobs <= 1 {
-        for k in 0..m.names.len() {
+        for k in 0..m.tasks() {
             if let Err(e) = run_task(m, k, true) {
                 eprintln!(
                     "[reconstruct] {} failed: {e:#}; the others go on",
-                    m.names[k]
+                    m.name(k)
                 );
                 failures.push(Failure {
-                    name: m.names[k].clone(),
+                    name: m.name(k).to_string(),
                     error: format!("{e:#}"),
-                    log: Some(m.error_file(&m.names[k])),
+                    log: Some(m.error_file(m.name(k))),
                 });
             }
         }
@@ -572,14 +721,14 @@ fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
     let exe = std::env::current_exe().context("finding the silvr binary")?;
     let logs = m.out.join("logs");
     std::fs::create_dir_all(&logs)?;
-    let todo: Vec<usize> = (0..m.names.len()).filter(|&k| !m.done(k)).collect();
+    let todo: Vec<usize> = (0..m.tasks()).filter(|&k| !m.done(k)).collect();
     m.say_done(&todo);
     let mut queue = todo.into_iter();
     let mut running: Vec<(usize, std::process::Child, PathBuf)> = Vec::new();
     loop {
         while running.len() < c.jobs {
             let Some(k) = queue.next() else { break };
-            let log = logs.join(format!("{}.log", m.names[k]));
+            let log = logs.join(format!("{}.log", m.name(k)));
             let file = std::fs::File::create(&log)
                 .with_context(|| format!("creating {}", log.display()))?;
             let child = std::process::Command::new(&exe)
@@ -593,9 +742,9 @@ fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
                 .with_context(|| format!("starting {}", exe.display()))?;
             eprintln!(
                 "[reconstruct] {} ({}/{}): training (log {})",
-                m.names[k],
+                m.name(k),
                 k + 1,
-                m.names.len(),
+                m.tasks(),
                 log.display()
             );
             running.push((k, child, log));
@@ -609,21 +758,21 @@ fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
             if let Some(status) = running[i].1.try_wait()? {
                 let (k, _, log) = running.swap_remove(i);
                 if !status.success() || !m.done(k) {
-                    let error = std::fs::read_to_string(m.error_file(&m.names[k]))
+                    let error = std::fs::read_to_string(m.error_file(m.name(k)))
                         .unwrap_or_else(|_| format!("exited with {status}"));
                     eprintln!(
                         "[reconstruct] {} failed ({}): see {}",
-                        m.names[k],
+                        m.name(k),
                         error.trim(),
                         log.display()
                     );
                     failures.push(Failure {
-                        name: m.names[k].clone(),
+                        name: m.name(k).to_string(),
                         error: error.trim().to_string(),
                         log: Some(log),
                     });
                 } else {
-                    eprintln!("[reconstruct] {}: done", m.names[k]);
+                    eprintln!("[reconstruct] {}: done", m.name(k));
                 }
             } else {
                 i += 1;
@@ -658,7 +807,7 @@ fn slurm(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
     std::fs::create_dir_all(&dir)?;
     std::fs::create_dir_all(&logs)?;
     let submitted = dir.join("submitted.json");
-    let todo: Vec<usize> = (0..m.names.len()).filter(|&k| !m.done(k)).collect();
+    let todo: Vec<usize> = (0..m.tasks()).filter(|&k| !m.done(k)).collect();
     m.say_done(&todo);
     if todo.is_empty() {
         return Ok(Vec::new());
@@ -731,7 +880,7 @@ fn slurm(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
             eprintln!(
                 "[reconstruct] submitted slurm job {id}: {} of {} submaps ({}), script {}",
                 todo.len(),
-                m.names.len(),
+                m.tasks(),
                 list.join(","),
                 path.display()
             );
@@ -797,16 +946,16 @@ fn slurm(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
             })
             .unwrap_or_else(|| "not finished".into());
         let log = logs.join(format!("slurm-{job}_{k}.out"));
-        let error = std::fs::read_to_string(m.error_file(&m.names[k]))
+        let error = std::fs::read_to_string(m.error_file(m.name(k)))
             .map(|e| format!("{state}: {}", e.trim()))
             .unwrap_or(state);
         eprintln!(
             "[reconstruct] {} failed as slurm task {task}: {error}; log {}",
-            m.names[k],
+            m.name(k),
             log.display()
         );
         failures.push(Failure {
-            name: m.names[k].clone(),
+            name: m.name(k).to_string(),
             error,
             log: Some(log),
         });

@@ -287,6 +287,8 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
         "8192",
         "--uncertainty-batches",
         "2",
+        "--renders",
+        "4",
     ];
     let broken = silvr(&args);
     let said = String::from_utf8_lossy(&broken.stderr).into_owned();
@@ -301,12 +303,18 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
     assert!(out.join("train/submap_01.error.txt").is_file());
     let merged = silvr_core::pointcloud::read_ply(&out.join("merged.ply")).unwrap();
     assert!(merged.scalar("submap").unwrap().iter().all(|&s| s == 0.0));
+    // No renders of an incomplete map.
+    assert!(report["renders"].is_null() && !out.join("renders").exists());
 
-    // Mended: the rerun keeps submap_00 and trains submap_01.
+    // Mended: the rerun keeps submap_00, trains submap_01, and (`--single`, a task of its own) one
+    // field over all images as the merged map's baseline.
     std::fs::write(&image, good).unwrap();
+    let mut args = args.to_vec();
+    args.push("--single");
     let said = ok(&args);
-    assert!(said.contains("submap_00 (1/2): done earlier"), "{said}");
-    assert!(said.contains("submap_01 (2/2): training"), "{said}");
+    assert!(said.contains("submap_00 (1/3): done earlier"), "{said}");
+    assert!(said.contains("submap_01 (2/3): training"), "{said}");
+    assert!(said.contains("single (3/3): training"), "{said}");
     assert!(!out.join("train/submap_01.error.txt").exists());
     let report = json(&out.join("report.json"));
     assert!(report["failed"].as_array().unwrap().is_empty());
@@ -330,16 +338,65 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
         "{} of {kept}",
         merged.len()
     );
-    let acc = report["evaluation"]["filtered"]["accuracy_m"]
+    let ev = &report["evaluation"];
+    for key in [
+        "filtered",
+        "unfiltered",
+        "single_unfiltered",
+        "boundary_filtered",
+    ] {
+        let acc = ev[key]["accuracy_m"].as_f64().unwrap_or(f64::NAN);
+        assert!(acc.is_finite() && acc > 0.0, "{key}: {acc}");
+    }
+    assert!(ev["claims"]["filter_accuracy_gain"]
         .as_f64()
-        .unwrap();
-    assert!(acc.is_finite() && acc > 0.0, "{acc}");
+        .unwrap()
+        .is_finite());
+    // The boundary zone is part of the merged map: no more points than it.
+    assert!(
+        ev["boundary_filtered"]["counts"]["reconstruction_input"]
+            .as_u64()
+            .unwrap()
+            <= merged.len() as u64
+    );
+    // Blended renders at the boundary: the micro world is synthetic, so the path is its keyframe
+    // midpoints, photographed by the generator; each view rendered by both submaps (WGSL) and blended.
+    let r = &report["renders"];
+    assert_eq!(r["path"], "synthetic keyframe midpoints", "{r}");
+    assert!(r["backend"].as_str().unwrap() != "cpu (rayon)", "{r}");
+    let views = r["views"].as_array().unwrap();
+    assert_eq!(views.len(), 4, "{r}");
+    for v in views {
+        let a = v["alpha_silvr"].as_f64().unwrap();
+        assert!(
+            (0.5 - 1e-9..=1.0).contains(&a) && v["second_m"].as_f64().unwrap() < 2.0,
+            "{v}"
+        );
+        for s in [
+            "nearest_only",
+            "second_only",
+            "blended_silvr",
+            "blended_idw",
+        ] {
+            let p = v[s]["psnr"].as_f64().unwrap();
+            assert!(p > 10.0 && p < 60.0, "{s}: {v}");
+        }
+        assert_ne!(v["nearest"], v["second"]);
+        assert!(Path::new(v["strip"].as_str().unwrap()).is_file(), "{v}");
+    }
+    for k in ["mean_psnr_nearest", "mean_psnr_blended_silvr"] {
+        assert!(r[k].as_f64().unwrap() > 10.0, "{k}: {r}");
+    }
 
     // A submap whose run did not finish (no train.json: killed) is trained again; the finished one is kept.
+    // (No renders from here on: they were checked above.)
+    let at = args.iter().position(|a| *a == "--renders").unwrap();
+    args[at + 1] = "0";
     std::fs::remove_file(out.join("train/submap_01/train.json")).unwrap();
     let said = ok(&args);
-    assert!(said.contains("submap_00 (1/2): done earlier"), "{said}");
-    assert!(said.contains("submap_01 (2/2): training"), "{said}");
+    assert!(said.contains("submap_00 (1/3): done earlier"), "{said}");
+    assert!(said.contains("submap_01 (2/3): training"), "{said}");
+    assert!(said.contains("single (3/3): done earlier"), "{said}");
     assert!(
         json(&out.join("report.json"))["merged_points"]
             .as_u64()
@@ -357,7 +414,9 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
     more[at] = "150";
     let said = ok(&more);
     assert!(
-        said.contains("submap_00 (1/2): training") && said.contains("submap_01 (2/2): training"),
+        said.contains("submap_00 (1/3): training")
+            && said.contains("submap_01 (2/3): training")
+            && said.contains("single (3/3): training"),
         "{said}"
     );
 }

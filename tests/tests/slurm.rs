@@ -65,6 +65,8 @@ fn slurm_array_equals_local_and_a_killed_task_is_resubmitted() {
             "4096",
             "--uncertainty-batches",
             "1",
+            "--renders",
+            "2",
             "--scheduler",
             scheduler,
             "--jobs",
@@ -159,6 +161,29 @@ fn slurm_array_equals_local_and_a_killed_task_is_resubmitted() {
             "{f} differs between the local and the Slurm run"
         );
     }
+    // The blended renders (drawn here from the submaps' checkpoints) agree too: the same views from the
+    // same submaps, the same scores (distances to the last bits aside: a rerun reads the poses stage's
+    // alignment back from JSON).
+    let views = |dir: &Path| -> Vec<String> {
+        json(&dir.join("renders/report.json"))["views"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| {
+                format!(
+                    "{} {} {} {} {} {}",
+                    v["name"],
+                    v["nearest"],
+                    v["second"],
+                    v["nearest_only"]["psnr"],
+                    v["blended_silvr"]["psnr"],
+                    v["blended_idw"]["psnr"]
+                )
+            })
+            .collect()
+    };
+    assert_eq!(views(&local), views(&out));
+    assert_eq!(views(&out).len(), 2, "{report}");
     let job_sh = std::fs::read_to_string(out.join("slurm/job.sh")).unwrap();
     assert!(job_sh.contains("reconstruct-task") && job_sh.contains("#SBATCH --output="));
 }

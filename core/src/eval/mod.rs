@@ -27,7 +27,7 @@ pub use metrics::{
 pub use occupancy::{OccupancyError, OccupancyGrid, OccupancyParams, VoxelState};
 pub use report::{error_colored_cloud, GeometryReport, PointCounts, ThresholdScores};
 
-use crate::pointcloud::{read_ply, PlyError};
+use crate::pointcloud::{read_ply, PlyError, PointCloud};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 
@@ -100,6 +100,16 @@ pub fn evaluate_files_full(
     gt_dir: &Path,
     options: &GeometryOptions,
 ) -> Result<GeometryEvaluation, EvalError> {
+    let rec = read_ply(reconstruction_ply)?;
+    evaluate_cloud(&rec, gt_dir, options)
+}
+
+/// [`evaluate_files_full`] of a cloud in memory (a subset of a map, for instance).
+pub fn evaluate_cloud(
+    rec: &PointCloud,
+    gt_dir: &Path,
+    options: &GeometryOptions,
+) -> Result<GeometryEvaluation, EvalError> {
     let paths = GroundTruthPaths::find(gt_dir)?;
     let gt = read_ply(&paths.cloud)?;
     let grid = paths
@@ -107,12 +117,11 @@ pub fn evaluate_files_full(
         .as_deref()
         .map(OccupancyGrid::load)
         .transpose()?;
-    let rec = read_ply(reconstruction_ply)?;
     let observed = ObservedSpace {
         gt: grid.as_ref(),
         sensor: None,
     };
-    let mut eval = evaluate_geometry(&rec, &gt, observed, options).map_err(|e| match e {
+    let mut eval = evaluate_geometry(rec, &gt, observed, options).map_err(|e| match e {
         EvalError::EmptyGroundTruth { .. } => EvalError::EmptyGroundTruth {
             file: paths.cloud.display().to_string(),
         },
@@ -137,7 +146,7 @@ pub fn evaluate_files_full(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pointcloud::{write_ply, PointCloud};
+    use crate::pointcloud::write_ply;
     use glam::DVec3;
 
     #[test]

@@ -311,6 +311,52 @@ impl TrainData {
         })
     }
 
+    /// Adds a view to render that is neither trained on nor held out (a camera path's pose, say): camera
+    /// `model` at `pose` (camera to world, OpenCV axes, the dataset's metric frame), its photo `rgb`
+    /// (row-major, the model's size; black when there is none). Returns its image index.
+    pub fn add_view(
+        &mut self,
+        name: &str,
+        model: &CameraModel,
+        pose: &crate::geometry::Se3,
+        rgb: Vec<[u8; 3]>,
+    ) -> Result<usize, DataError> {
+        let n = (model.width * model.height) as usize;
+        if rgb.len() != n {
+            return Err(bad(
+                &self.root,
+                format!(
+                    "view {name}: {} pixels for a {}x{} camera",
+                    rgb.len(),
+                    model.width,
+                    model.height
+                ),
+            ));
+        }
+        let camera = match self.cameras.iter().position(|c| c == model) {
+            Some(c) => c,
+            None => {
+                self.cameras.push(*model);
+                self.directions.push(direction_table(model));
+                self.cameras.len() - 1
+            }
+        };
+        self.images.push(Image {
+            name: name.to_string(),
+            width: model.width,
+            height: model.height,
+            camera,
+            rotation: DMat3::from_quat(pose.rot),
+            origin: self.frame.to_scene(pose.trans),
+            rgb,
+            depth: Vec::new(),
+            normals: Vec::new(),
+            sky: Vec::new(),
+            appearance: None,
+        });
+        Ok(self.images.len() - 1)
+    }
+
     /// Whether any training image has lidar depth.
     pub fn has_lidar(&self) -> bool {
         self.train.iter().any(|&i| !self.images[i].depth.is_empty())

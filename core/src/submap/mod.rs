@@ -21,6 +21,8 @@ use glam::DVec3;
 use nalgebra::{DMatrix, SymmetricEigen};
 use serde::Serialize;
 
+pub mod blend;
+
 /// A weighted undirected graph over nodes `0..n` (adjacency lists, both directions stored).
 #[derive(Clone, Debug, Default)]
 pub struct Graph {
@@ -884,9 +886,59 @@ pub fn merge(
     out
 }
 
+/// Which points lie in the boundary zone between submaps: where the nearest training cameras of the
+/// two nearest submaps are within `width` metres of the same distance (near the bisector of their camera
+/// sets, where view selection switches from one submap to the other and a cut shows as a seam).
+/// `cameras[k]`: submap k's training camera centres, in the points' frame.
+pub fn near_boundary(positions: &[DVec3], cameras: &[Vec<DVec3>], width: f64) -> Vec<bool> {
+    use crate::eval::metrics::NearestNeighbours;
+    let trees: Vec<NearestNeighbours> = cameras
+        .iter()
+        .filter(|c| !c.is_empty())
+        .map(|c| NearestNeighbours::new(c))
+        .collect();
+    if trees.len() < 2 {
+        return vec![false; positions.len()];
+    }
+    let per: Vec<Vec<f64>> = trees.iter().map(|t| t.distances(positions)).collect();
+    (0..positions.len())
+        .map(|i| {
+            let (mut d1, mut d2) = (f64::INFINITY, f64::INFINITY);
+            for d in per.iter().map(|p| p[i]) {
+                if d < d1 {
+                    (d1, d2) = (d, d1);
+                } else if d < d2 {
+                    d2 = d;
+                }
+            }
+            d2 - d1 < width
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The boundary zone is the band around the bisector of two submaps' cameras; one submap has none.
+    #[test]
+    fn near_boundary_is_the_band_between_two_submaps_cameras() {
+        let cams = vec![
+            vec![DVec3::new(0.0, 0.0, 0.0), DVec3::new(2.0, 0.0, 0.0)],
+            vec![DVec3::new(10.0, 0.0, 0.0)],
+            vec![],
+        ];
+        let pts: Vec<DVec3> = [1.0, 5.5, 6.0, 6.9, 8.5]
+            .iter()
+            .map(|&x| DVec3::new(x, 5.0, 0.0))
+            .collect();
+        // Bisector of 2 and 10 at x = 6: |d1 − d2| < 2 m from x ≈ 4.6 to 7.7 (at y = 5).
+        assert_eq!(
+            near_boundary(&pts, &cams, 2.0),
+            vec![false, true, true, true, false]
+        );
+        assert!(near_boundary(&pts, &cams[..1], 2.0).iter().all(|b| !b));
+    }
 
     /// The sparse Lanczos path finds the dense solver's Fiedler vector (up to sign) on a 600-keyframe
     /// path graph, so large parts are cut as small ones are.
