@@ -8,8 +8,10 @@
 //! The per-submap work is a task (`silvr reconstruct-task OUT/reconstruct.json --index I`, the index from
 //! `SLURM_ARRAY_TASK_ID` when not given): `reconstruct.json` records what every task is computed from (the
 //! dataset, the submaps, the training settings, the program's version), and each finished submap records
-//! the settings it was trained with (`train/NAME/task.json`, written last). A submap is done when that
-//! record matches; a rerun redoes only the rest, so a kill loses at most the tasks that were running.
+//! the settings it was trained with and a fingerprint of its inputs (`train/NAME/task.json`, written
+//! last: [`TaskRecord`]). A submap is done when that record matches; a rerun redoes only the rest, so a
+//! kill loses at most the tasks that were running, and a changed input file redoes the tasks that read it
+//! (and, when it is the dataset's, the poses and the cut before them).
 //! A failed task writes `train/NAME.error.txt` and the others go on.
 //!
 //! Schedulers: `local` runs the tasks here (`--jobs N` at once as child processes, one at a time in
@@ -163,10 +165,72 @@ pub struct Manifest {
     /// Whether task `names.len()` trains one field over all of `trained_from` (`train/single`).
     #[serde(default)]
     pub single: bool,
+    /// The dataset's input fingerprint ([`inputs_fingerprint`]): when it changes, the poses and the cut
+    /// are done again.
+    #[serde(default)]
+    pub dataset_inputs: String,
+    /// Per task, the fingerprint of what it trains on: a task is redone when its inputs changed.
+    #[serde(default)]
+    pub inputs: Vec<String>,
 }
 
 /// The single-field baseline's task name.
 pub const SINGLE: &str = "single";
+
+/// What a finished task's `task.json` records: the settings it was trained with and the fingerprint of
+/// what it read; it is done while both match the manifest's.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TaskRecord {
+    #[serde(flatten)]
+    pub settings: TaskSettings,
+    pub inputs: String,
+}
+
+/// A fingerprint of what training on a dataset reads: its transforms.json, and the name, size and
+/// modification time of every file a frame names (what make and cargo compare: hashing the images would
+/// read every one of them on each rerun). FNV-1a, 64 bits, stable across builds.
+pub fn inputs_fingerprint(dataset: &Path) -> Result<String> {
+    struct Fnv(u64);
+    impl Fnv {
+        fn write(&mut self, b: &[u8]) {
+            for &x in b {
+                self.0 = (self.0 ^ x as u64).wrapping_mul(0x100_0000_01b3);
+            }
+        }
+    }
+    let json = crate::transforms_file(dataset);
+    let root = json.parent().unwrap_or(Path::new(".")).to_path_buf();
+    let bytes = std::fs::read(&json).with_context(|| format!("reading {}", json.display()))?;
+    let mut h = Fnv(0xcbf2_9ce4_8422_2325);
+    h.write(&bytes);
+    let text = std::str::from_utf8(&bytes)
+        .with_context(|| format!("{} is not UTF-8 text", json.display()))?;
+    let (frames, _, _) = silvr_core::dataset::parse_frames(text, &json)?;
+    for f in &frames {
+        let files = [
+            Some(&f.file_path),
+            f.depth_file_path.as_ref(),
+            f.normal_file_path.as_ref(),
+            f.sky_mask_path.as_ref(),
+        ];
+        for p in files.into_iter().flatten() {
+            h.write(p.as_bytes());
+            match std::fs::metadata(root.join(p)) {
+                Ok(m) => {
+                    h.write(&m.len().to_le_bytes());
+                    let t = m
+                        .modified()
+                        .ok()
+                        .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                        .map_or(0, |d| d.as_nanos());
+                    h.write(&t.to_le_bytes());
+                }
+                Err(_) => h.write(b"missing"),
+            }
+        }
+    }
+    Ok(format!("{:016x}", h.0))
+}
 
 impl Manifest {
     fn read(path: &Path) -> Result<Manifest> {
@@ -206,8 +270,10 @@ impl Manifest {
         dir.join("train.json").is_file()
             && std::fs::read(dir.join("task.json"))
                 .ok()
-                .and_then(|b| serde_json::from_slice::<TaskSettings>(&b).ok())
-                .is_some_and(|s| s == self.settings)
+                .and_then(|b| serde_json::from_slice::<TaskRecord>(&b).ok())
+                .is_some_and(|r| {
+                    r.settings == self.settings && Some(&r.inputs) == self.inputs.get(k)
+                })
     }
 
     /// Prints the submaps not in `todo` as done earlier.
@@ -304,9 +370,13 @@ fn run_task(m: &Manifest, k: usize, say: bool) -> Result<()> {
                 }
             }),
         })?;
+        let record = TaskRecord {
+            settings: s.clone(),
+            inputs: m.inputs.get(k).cloned().unwrap_or_default(),
+        };
         crate::write_atomic(
             &dir.join("task.json"),
-            serde_json::to_string_pretty(s)?.as_bytes(),
+            serde_json::to_string_pretty(&record)?.as_bytes(),
         )
     })()
     .with_context(|| format!("submap {name}"));
@@ -355,6 +425,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         overlap: c.overlap,
     };
     let manifest_path = out.join("reconstruct.json");
+    let dataset_inputs = inputs_fingerprint(&c.dataset)?;
     if manifest_path.is_file() {
         let before = Manifest::read(&manifest_path)?;
         if before.cut != cut {
@@ -364,6 +435,21 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
                 before.cut,
                 cut
             );
+        }
+        // The dataset changed since (a file a frame names, or transforms.json): poses and cut again;
+        // the tasks whose inputs changed with them are redone, the others kept.
+        if !before.dataset_inputs.is_empty() && before.dataset_inputs != dataset_inputs {
+            eprintln!(
+                "[reconstruct] {} changed since the last run: refining the poses and cutting again",
+                c.dataset.display()
+            );
+            for stage in ["poses", "submaps"] {
+                let dir = out.join(stage);
+                if dir.exists() {
+                    std::fs::remove_dir_all(&dir)
+                        .with_context(|| format!("removing {}", dir.display()))?;
+                }
+            }
         }
     }
     // The poses stage: the dataset's poses refined (written as a dataset under OUT/poses, renamed into
@@ -446,7 +532,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
     if names.is_empty() {
         anyhow::bail!("{}/manifest.json lists no submaps", subs.display());
     }
-    let m = Manifest {
+    let mut m = Manifest {
         dataset: abs(&c.dataset)?,
         out: out.clone(),
         cut,
@@ -465,7 +551,12 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         },
         trained_from: abs(&cut_from)?,
         single: c.single,
+        dataset_inputs,
+        inputs: Vec::new(),
     };
+    m.inputs = (0..m.tasks())
+        .map(|k| inputs_fingerprint(&m.task_dataset(k)))
+        .collect::<Result<_>>()?;
     crate::write_atomic(&manifest_path, serde_json::to_string_pretty(&m)?.as_bytes())?;
 
     let started: Vec<bool> = (0..m.tasks()).map(|k| !m.done(k)).collect();
@@ -702,8 +793,13 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
 /// The local scheduler: in process one after another, or `--jobs N` child processes at once.
 fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<Failure>> {
     let mut failures = Vec::new();
+    let t = Instant::now();
     if c.jobs <= 1 {
+        let todo: Vec<usize> = (0..m.tasks()).filter(|&k| !m.done(k)).collect();
         for k in 0..m.tasks() {
+            if todo.contains(&k) {
+                progress(&todo, todo.iter().filter(|&&j| j < k).count(), t);
+            }
             if let Err(e) = run_task(m, k, true) {
                 eprintln!(
                     "[reconstruct] {} failed: {e:#}; the others go on",
@@ -723,7 +819,8 @@ fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
     std::fs::create_dir_all(&logs)?;
     let todo: Vec<usize> = (0..m.tasks()).filter(|&k| !m.done(k)).collect();
     m.say_done(&todo);
-    let mut queue = todo.into_iter();
+    let mut queue = todo.clone().into_iter();
+    let mut finished = 0;
     let mut running: Vec<(usize, std::process::Child, PathBuf)> = Vec::new();
     loop {
         while running.len() < c.jobs {
@@ -757,6 +854,7 @@ fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
         while i < running.len() {
             if let Some(status) = running[i].1.try_wait()? {
                 let (k, _, log) = running.swap_remove(i);
+                finished += 1;
                 if !status.success() || !m.done(k) {
                     let error = std::fs::read_to_string(m.error_file(m.name(k)))
                         .unwrap_or_else(|_| format!("exited with {status}"));
@@ -774,12 +872,27 @@ fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
                 } else {
                     eprintln!("[reconstruct] {}: done", m.name(k));
                 }
+                progress(&todo, finished, t);
             } else {
                 i += 1;
             }
         }
     }
     Ok(failures)
+}
+
+/// `finished` of the tasks `todo` of this run are over after `t`: how many, and the time left at that
+/// pace.
+fn progress(todo: &[usize], finished: usize, t: Instant) {
+    if finished == 0 || finished >= todo.len() {
+        return;
+    }
+    let s = t.elapsed().as_secs_f64();
+    eprintln!(
+        "[reconstruct] {finished}/{} tasks of this run over ({s:.0} s), ETA {:.0} s",
+        todo.len(),
+        s / finished as f64 * (todo.len() - finished) as f64
+    );
 }
 
 /// Runs a command, its stdout as text, or an error naming it and its stderr.

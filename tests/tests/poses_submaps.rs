@@ -246,8 +246,10 @@ fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
 
 /// `silvr reconstruct` on the local scheduler: two covis submaps trained on WGSL with their uncertainty,
 /// merged with a submap id per point and scored against ground truth; a submap that fails (a corrupt
-/// image only it sees) is reported and left out while the other finishes; the rerun after the fix keeps
-/// the finished submap and trains only the failed one; so does a rerun after a killed one.
+/// image only it sees) is reported and left out while the other finishes (and nothing is rendered); the
+/// rerun after the fix keeps the finished submap and trains only the failed one, plus the `--single`
+/// baseline, scores the boundary zone and renders boundary views blended from both submaps on WGSL; a
+/// rerun after a killed task and a changed input redoes only what they touch; other settings redo all.
 #[test]
 fn reconstruct_trains_each_submap_merges_and_resumes() {
     let tmp = tempfile::tempdir().unwrap();
@@ -389,14 +391,19 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
     }
 
     // A submap whose run did not finish (no train.json: killed) is trained again; the finished one is kept.
+    // An input file changed since (rewritten: a new modification time) redoes the tasks that read it — the
+    // single field, and submap_01, which holds it — and the cut before them, but not submap_00.
     // (No renders from here on: they were checked above.)
     let at = args.iter().position(|a| *a == "--renders").unwrap();
     args[at + 1] = "0";
     std::fs::remove_file(out.join("train/submap_01/train.json")).unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(20));
+    std::fs::write(&image, std::fs::read(&image).unwrap()).unwrap();
     let said = ok(&args);
+    assert!(said.contains("changed since the last run"), "{said}");
     assert!(said.contains("submap_00 (1/3): done earlier"), "{said}");
     assert!(said.contains("submap_01 (2/3): training"), "{said}");
-    assert!(said.contains("single (3/3): done earlier"), "{said}");
+    assert!(said.contains("single (3/3): training"), "{said}");
     assert!(
         json(&out.join("report.json"))["merged_points"]
             .as_u64()
