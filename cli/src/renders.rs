@@ -226,17 +226,18 @@ pub fn run(job: &RenderJob) -> Result<RendersReport> {
             "no path view has a second submap within {radius} m: nothing to blend"
         ));
     }
-    // Photos.
+    // Photos (a view whose photo cannot be read, or is not the camera's size, is left out and named).
     let world = preset
         .as_ref()
         .map(|p| silvr_core::synthetic::world::World::generate(p.world.clone(), p.seed));
     let mut photos = Vec::new();
-    for &(i, _, _) in &chosen {
+    let mut kept = Vec::new();
+    for &(i, a, b) in &chosen {
         let v = &path[i];
-        let rgb = match &v.photo {
+        let rgb: Result<Vec<[u8; 3]>> = match &v.photo {
             Photo::Synthetic { index, pose } => {
                 let (p, w) = (preset.as_ref().unwrap(), world.as_ref().unwrap());
-                silvr_core::synthetic::sensors::render_camera(
+                Ok(silvr_core::synthetic::sensors::render_camera(
                     w,
                     &p.rig.cameras[*index].model,
                     pose,
@@ -246,17 +247,28 @@ pub fn run(job: &RenderJob) -> Result<RendersReport> {
                         seed: 0,
                     },
                 )
-                .rgb
+                .rgb)
             }
             Photo::File(f) => image::open(f)
-                .with_context(|| format!("reading {}", f.display()))?
-                .to_rgb8()
-                .pixels()
-                .map(|p| p.0)
-                .collect(),
+                .with_context(|| format!("reading {}", f.display()))
+                .map(|im| im.to_rgb8().pixels().map(|p| p.0).collect()),
         };
-        photos.push(rgb);
+        match rgb {
+            Ok(rgb) if rgb.len() == (v.model.width * v.model.height) as usize => {
+                photos.push(rgb);
+                kept.push((i, a, b));
+            }
+            Ok(rgb) => notes.push(format!(
+                "{}: its photo has {} pixels, the camera {}x{}; left out",
+                v.name,
+                rgb.len(),
+                v.model.width,
+                v.model.height
+            )),
+            Err(e) => notes.push(format!("{}: {e:#}; left out", v.name)),
+        }
     }
+    let chosen = kept;
     // Renders, one submap's field loaded at a time: renders[c] = [nearest, second], each (RGB, valid).
     type Render = Option<(Vec<[u8; 3]>, Vec<bool>)>;
     let mut renders: Vec<[Render; 2]> = vec![[None, None]; chosen.len()];

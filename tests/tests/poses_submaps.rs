@@ -428,6 +428,122 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
     );
 }
 
+/// `silvr reconstruct` killed with SIGKILL in the middle of its second submap: every output already
+/// there is whole (each JSON parses, each PLY reads: stages write under a temporary name, then rename),
+/// and the rerun finishes with the same merged map as a run never interrupted (CPU reference: the same
+/// bits on every run, which the equality needs).
+#[test]
+fn reconstruct_killed_at_any_moment_finishes_with_the_same_map() {
+    let tmp = tempfile::tempdir().unwrap();
+    // A copy without the generator's manifest: to the renders, a capture like any other.
+    let data = tmp.path().join("capture");
+    let cp = Command::new("cp")
+        .arg("-r")
+        .arg(world())
+        .arg(&data)
+        .status()
+        .unwrap();
+    assert!(cp.success());
+    std::fs::remove_file(data.join("manifest.json")).unwrap();
+    let d = data.to_str().unwrap().to_string();
+    let args = |out: &Path| -> Vec<String> {
+        [
+            "reconstruct",
+            &d,
+            "--out",
+            out.to_str().unwrap(),
+            "--poses",
+            "skip",
+            "--count",
+            "2",
+            "--model",
+            "tiny",
+            "--steps",
+            "60",
+            "--rays",
+            "256",
+            "--backend",
+            "cpu",
+            "--export-rays",
+            "4096",
+            "--uncertainty-batches",
+            "1",
+            "--renders",
+            "0",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
+    };
+    let clean = tmp.path().join("clean");
+    let a = args(&clean);
+    ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
+
+    let out = tmp.path().join("killed");
+    let b = args(&out);
+    let mut child = Command::new(build_silvr())
+        .args(&b)
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let t = std::time::Instant::now();
+    while !out.join("train/submap_01").exists() {
+        assert!(t.elapsed().as_secs() < 300, "submap_01 never started");
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "finished before the kill"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    child.kill().unwrap();
+    child.wait().unwrap();
+    // What is there under its final name is whole.
+    let mut files = vec![out.clone()];
+    let mut seen = 0;
+    while let Some(p) = files.pop() {
+        if p.is_dir() {
+            for e in std::fs::read_dir(&p).unwrap() {
+                files.push(e.unwrap().path());
+            }
+            continue;
+        }
+        let name = p.file_name().unwrap().to_string_lossy().into_owned();
+        if name.starts_with('.')
+            || p.components()
+                .any(|c| c.as_os_str().to_string_lossy().ends_with(".partial"))
+        {
+            continue;
+        }
+        if name.ends_with(".json") {
+            serde_json::from_slice::<serde_json::Value>(&std::fs::read(&p).unwrap())
+                .unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+            seen += 1;
+        } else if name.ends_with(".ply") {
+            silvr_core::pointcloud::read_ply(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+            seen += 1;
+        }
+    }
+    assert!(seen >= 3, "{seen} outputs checked");
+    assert!(!out.join("merged.ply").exists(), "killed before the merge");
+    // The rerun (with renders now: of a capture, along its held-out frames) finishes the same map.
+    let mut b: Vec<&str> = b.iter().map(String::as_str).collect();
+    *b.last_mut().unwrap() = "2";
+    let said = ok(&b);
+    assert!(said.contains("submap_00 (1/2): done earlier"), "{said}");
+    assert!(
+        std::fs::read(out.join("merged.ply")).unwrap()
+            == std::fs::read(clean.join("merged.ply")).unwrap(),
+        "the resumed run's merged map differs from the clean run's"
+    );
+    let r = json(&out.join("renders/report.json"));
+    assert_eq!(r["path"], "held-out frames", "{r}");
+    assert_eq!(r["path_views"], 3, "{r}");
+    for v in r["views"].as_array().unwrap() {
+        assert!(v["blended_silvr"]["psnr"].as_f64().unwrap() > 10.0, "{v}");
+    }
+}
+
 /// `silvr poses` on the micro world's SLAM prior: every image registers, the refined poses beat the
 /// prior against the exact ones (the ci world's ≥ 5x check runs in the demo test), and the output is a
 /// dataset: its transforms.json reaches the dataset's images from where it is written, and the COLMAP
