@@ -650,8 +650,10 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         clouds.push(("filtered", merged_path.clone()));
         let mut rows = Vec::new();
         let mut table = serde_json::Map::new();
+        let truth = eval::GroundTruth::load(&gt)?;
         for (key, path) in &clouds {
-            let ev = eval::evaluate_files(path, &gt, &opts)?;
+            let cloud = read_ply(path).with_context(|| format!("reading {}", path.display()))?;
+            let ev = truth.evaluate(&cloud, &opts)?.report;
             rows.push((key.to_string(), ev.clone()));
             table.insert(key.to_string(), serde_json::to_value(&ev)?);
         }
@@ -670,7 +672,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             if idx.is_empty() {
                 continue;
             }
-            let ev = eval::evaluate_cloud(&cloud.select(&idx), &gt, &opts)?.report;
+            let ev = truth.evaluate(&cloud.select(&idx), &opts)?.report;
             rows.push((key.to_string(), ev.clone()));
             table.insert(key.to_string(), serde_json::to_value(&ev)?);
         }

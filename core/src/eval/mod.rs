@@ -110,37 +110,64 @@ pub fn evaluate_cloud(
     gt_dir: &Path,
     options: &GeometryOptions,
 ) -> Result<GeometryEvaluation, EvalError> {
-    let paths = GroundTruthPaths::find(gt_dir)?;
-    let gt = read_ply(&paths.cloud)?;
-    let grid = paths
-        .observed
-        .as_deref()
-        .map(OccupancyGrid::load)
-        .transpose()?;
-    let observed = ObservedSpace {
-        gt: grid.as_ref(),
-        sensor: None,
-    };
-    let mut eval = evaluate_geometry(rec, &gt, observed, options).map_err(|e| match e {
-        EvalError::EmptyGroundTruth { .. } => EvalError::EmptyGroundTruth {
-            file: paths.cloud.display().to_string(),
-        },
-        other => other,
-    })?;
-    if options.filter_unknown && grid.is_none() {
-        let missing = paths.cloud.with_file_name("observed.bin");
-        eval.report
-            .notes
-            .retain(|n| !n.starts_with("no GT observed-space grid"));
-        eval.report.notes.insert(
-            0,
-            format!(
-                "{} not found: unknown-space filter skipped",
-                missing.display()
-            ),
-        );
+    GroundTruth::load(gt_dir)?.evaluate(rec, options)
+}
+
+/// A dataset's ground truth read once (the cloud and the observed-space grid), to score several clouds
+/// against: on the default world they are 1.5 GB to read.
+pub struct GroundTruth {
+    pub paths: GroundTruthPaths,
+    pub cloud: PointCloud,
+    pub grid: Option<OccupancyGrid>,
+}
+
+impl GroundTruth {
+    /// Reads the GT in `gt_dir` (see [`GroundTruthPaths::find`]).
+    pub fn load(gt_dir: &Path) -> Result<Self, EvalError> {
+        let paths = GroundTruthPaths::find(gt_dir)?;
+        let cloud = read_ply(&paths.cloud)?;
+        let grid = paths
+            .observed
+            .as_deref()
+            .map(OccupancyGrid::load)
+            .transpose()?;
+        Ok(Self { paths, cloud, grid })
     }
-    Ok(eval)
+
+    /// Scores `rec` against it. Without an observed-space grid the unknown-space filter is skipped and the
+    /// report's `notes` say so.
+    pub fn evaluate(
+        &self,
+        rec: &PointCloud,
+        options: &GeometryOptions,
+    ) -> Result<GeometryEvaluation, EvalError> {
+        let paths = &self.paths;
+        let observed = ObservedSpace {
+            gt: self.grid.as_ref(),
+            sensor: None,
+        };
+        let mut eval =
+            evaluate_geometry(rec, &self.cloud, observed, options).map_err(|e| match e {
+                EvalError::EmptyGroundTruth { .. } => EvalError::EmptyGroundTruth {
+                    file: paths.cloud.display().to_string(),
+                },
+                other => other,
+            })?;
+        if options.filter_unknown && self.grid.is_none() {
+            let missing = paths.cloud.with_file_name("observed.bin");
+            eval.report
+                .notes
+                .retain(|n| !n.starts_with("no GT observed-space grid"));
+            eval.report.notes.insert(
+                0,
+                format!(
+                    "{} not found: unknown-space filter skipped",
+                    missing.display()
+                ),
+            );
+        }
+        Ok(eval)
+    }
 }
 
 #[cfg(test)]
