@@ -634,6 +634,20 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         .to_path_buf();
     let single_dir = m.dir(SINGLE);
     let single_done = m.single && m.done(m.names.len());
+    // The baseline field's own summary (held-out PSNR over all of the dataset's held-out views).
+    let single = if single_done {
+        let t: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(single_dir.join("train.json"))?)
+                .with_context(|| format!("reading {}/train.json", single_dir.display()))?;
+        serde_json::json!({
+            "heldout_psnr_mean": t["heldout_psnr_mean"],
+            "train_s": t["train_s"],
+            "backend": t["backend"],
+            "trained_this_run": started[m.names.len()],
+        })
+    } else {
+        serde_json::Value::Null
+    };
     let evaluation = if gt.join("gt/cloud.ply").is_file() {
         let opts = GeometryOptions {
             reconstruction_to_gt: alignment.map(|a| a.to_mat4()),
@@ -762,6 +776,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         "poses": poses_block,
         "submaps": plan,
         "per_submap": per_submap,
+        "single": single,
         "merge": { "rule": "per 0.2 m voxel, the submap with the lowest median log_std_combined there keeps its points", "voxel_m": merge_voxel },
         "failed": failed,
         "merged_points": merged.len(),

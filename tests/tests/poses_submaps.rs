@@ -350,6 +350,10 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
         let acc = ev[key]["accuracy_m"].as_f64().unwrap_or(f64::NAN);
         assert!(acc.is_finite() && acc > 0.0, "{key}: {acc}");
     }
+    assert!(
+        report["single"]["heldout_psnr_mean"].as_f64().unwrap() > 10.0,
+        "{report}"
+    );
     assert!(ev["claims"]["filter_accuracy_gain"]
         .as_f64()
         .unwrap()
