@@ -653,21 +653,29 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             reconstruction_to_gt: alignment.map(|a| a.to_mat4()),
             ..GeometryOptions::default()
         };
-        let mut clouds: Vec<(&str, PathBuf)> = Vec::new();
+        // The merged maps as in memory; the single field's clouds from its folder.
+        let mut clouds: Vec<(&str, std::borrow::Cow<silvr_core::pointcloud::PointCloud>)> =
+            Vec::new();
         if single_done {
-            clouds.push(("single_unfiltered", single_dir.join("points.ply")));
-            if single_dir.join("points_filtered.ply").is_file() {
-                clouds.push(("single_filtered", single_dir.join("points_filtered.ply")));
+            for (key, file) in [
+                ("single_unfiltered", "points.ply"),
+                ("single_filtered", "points_filtered.ply"),
+            ] {
+                let path = single_dir.join(file);
+                if path.is_file() {
+                    let cloud =
+                        read_ply(&path).with_context(|| format!("reading {}", path.display()))?;
+                    clouds.push((key, std::borrow::Cow::Owned(cloud)));
+                }
             }
         }
-        clouds.push(("unfiltered", merged_all_path.clone()));
-        clouds.push(("filtered", merged_path.clone()));
+        clouds.push(("unfiltered", std::borrow::Cow::Borrowed(&merged_all)));
+        clouds.push(("filtered", std::borrow::Cow::Borrowed(&merged)));
         let mut rows = Vec::new();
         let mut table = serde_json::Map::new();
         let truth = eval::GroundTruth::load(&gt)?;
-        for (key, path) in &clouds {
-            let cloud = read_ply(path).with_context(|| format!("reading {}", path.display()))?;
-            let ev = truth.evaluate(&cloud, &opts)?.report;
+        for (key, cloud) in &clouds {
+            let ev = truth.evaluate(cloud, &opts)?.report;
             rows.push((key.to_string(), ev.clone()));
             table.insert(key.to_string(), serde_json::to_value(&ev)?);
         }

@@ -178,14 +178,8 @@ pub(crate) fn training_cameras(submap_dataset: &Path) -> Result<Vec<DVec3>> {
 }
 
 fn score(rgb: &[[u8; 3]], photo: &[[u8; 3]], valid: &[bool], w: u32, h: u32) -> Result<Score> {
-    let mk = |px: &[[u8; 3]]| {
-        image::RgbImage::from_fn(w, h, |x, y| image::Rgb(px[(y * w + x) as usize]))
-    };
-    let (a, b) = (mk(rgb), mk(photo));
-    Ok(Score {
-        psnr: silvr_core::eval::image::psnr_rgb8(&a, &b, Some(valid))?,
-        ssim: silvr_core::eval::image::ssim_rgb8(&a, &b, Some(valid))?,
-    })
+    let (psnr, ssim) = silvr_core::train::export::score_pixels(w, h, rgb, photo, valid)?;
+    Ok(Score { psnr, ssim })
 }
 
 /// Renders the path's boundary views (at most `key.views`, spread along the path) into `OUT/renders`

@@ -42,6 +42,18 @@ fn world() -> &'static Path {
     .1
 }
 
+/// A copy of the micro world at `dest` (for tests that change its files).
+fn copy_of_world(dest: &Path) -> std::path::PathBuf {
+    let cp = Command::new("cp")
+        .arg("-r")
+        .arg(world())
+        .arg(dest)
+        .status()
+        .unwrap();
+    assert!(cp.success());
+    dest.to_path_buf()
+}
+
 #[test]
 fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
     let tmp = tempfile::tempdir().unwrap();
@@ -254,14 +266,7 @@ fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
 fn reconstruct_trains_each_submap_merges_and_resumes() {
     let tmp = tempfile::tempdir().unwrap();
     // A copy of the world: one of its images gets broken and mended.
-    let data = tmp.path().join("micro");
-    let cp = Command::new("cp")
-        .arg("-r")
-        .arg(world())
-        .arg(&data)
-        .status()
-        .unwrap();
-    assert!(cp.success());
+    let data = copy_of_world(&tmp.path().join("micro"));
     let d = data.to_str().unwrap();
     let image = data.join("images/cam_front/00011.png");
     let good = std::fs::read(&image).unwrap();
@@ -440,14 +445,7 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
 fn reconstruct_killed_at_any_moment_finishes_with_the_same_map() {
     let tmp = tempfile::tempdir().unwrap();
     // A copy without the generator's manifest: to the renders, a capture like any other.
-    let data = tmp.path().join("capture");
-    let cp = Command::new("cp")
-        .arg("-r")
-        .arg(world())
-        .arg(&data)
-        .status()
-        .unwrap();
-    assert!(cp.success());
+    let data = copy_of_world(&tmp.path().join("capture"));
     std::fs::remove_file(data.join("manifest.json")).unwrap();
     let d = data.to_str().unwrap().to_string();
     let args = |out: &Path| -> Vec<String> {

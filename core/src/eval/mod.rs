@@ -100,17 +100,8 @@ pub fn evaluate_files_full(
     gt_dir: &Path,
     options: &GeometryOptions,
 ) -> Result<GeometryEvaluation, EvalError> {
-    let rec = read_ply(reconstruction_ply)?;
-    evaluate_cloud(&rec, gt_dir, options)
-}
-
-/// [`evaluate_files_full`] of a cloud in memory (a subset of a map, for instance).
-pub fn evaluate_cloud(
-    rec: &PointCloud,
-    gt_dir: &Path,
-    options: &GeometryOptions,
-) -> Result<GeometryEvaluation, EvalError> {
-    GroundTruth::load(gt_dir)?.evaluate(rec, options)
+    let truth = GroundTruth::load(gt_dir)?;
+    truth.evaluate(&read_ply(reconstruction_ply)?, options)
 }
 
 /// A dataset's ground truth read once (the cloud and the observed-space grid), to score several clouds

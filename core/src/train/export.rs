@@ -73,6 +73,24 @@ fn to_u8(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
 }
 
+/// PSNR and SSIM of a `w`×`h` render against its photo (row-major RGB), over the `valid` pixels.
+pub fn score_pixels(
+    w: u32,
+    h: u32,
+    render: &[[u8; 3]],
+    photo: &[[u8; 3]],
+    valid: &[bool],
+) -> Result<(f64, f64), crate::eval::image::ImageMetricError> {
+    let mk = |px: &[[u8; 3]]| {
+        image::RgbImage::from_fn(w, h, |x, y| image::Rgb(px[(y * w + x) as usize]))
+    };
+    let (a, b) = (mk(render), mk(photo));
+    Ok((
+        psnr_rgb8(&a, &b, Some(valid))?,
+        ssim_rgb8(&a, &b, Some(valid))?,
+    ))
+}
+
 impl Trainer {
     /// Rays of every pixel of image `i` (held-out images use the mean appearance).
     pub fn view_rays(&self, i: usize) -> (Vec<TrainRay>, Vec<bool>) {
@@ -144,19 +162,12 @@ impl Trainer {
     /// PSNR and SSIM of image `i`'s render against its photo, over the pixels the camera has rays for.
     pub fn score_view(&self, i: usize, v: &ViewRender) -> Result<ViewScore, GpuError> {
         let im = &self.data.images[i];
-        let mk = |px: &[[u8; 3]]| {
-            image::RgbImage::from_fn(im.width, im.height, |x, y| {
-                image::Rgb(px[(y * im.width + x) as usize])
-            })
-        };
-        let (a, b) = (mk(&v.rgb), mk(&im.rgb));
-        let e = |e: crate::eval::image::ImageMetricError| {
-            GpuError::InvalidInput(format!("scoring {}: {e}", im.name))
-        };
+        let (psnr, ssim) = score_pixels(im.width, im.height, &v.rgb, &im.rgb, &v.valid)
+            .map_err(|e| GpuError::InvalidInput(format!("scoring {}: {e}", im.name)))?;
         Ok(ViewScore {
             name: im.name.clone(),
-            psnr: psnr_rgb8(&a, &b, Some(&v.valid)).map_err(e)?,
-            ssim: ssim_rgb8(&a, &b, Some(&v.valid)).map_err(e)?,
+            psnr,
+            ssim,
         })
     }
 
