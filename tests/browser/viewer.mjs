@@ -2,7 +2,7 @@
 // tests with node:test; `viewer.chromium.test.mjs` (playwright-core, SwiftShader WebGPU) and
 // `viewer.firefox.test.mjs` (puppeteer-core over WebDriver BiDi, lavapipe WebGPU) supply the driver.
 //
-// Fixtures: the ci demo's reconstructions, copied by the native end-to-end test (tests/tests/cli.rs) into
+// Fixtures: the ci demo's reconstructions, copied by the native end-to-end test (tests/tests/demo.rs) into
 // $SILVR_STUDIO_FIXTURES (scripts/test.sh: target/studio-fixtures): points.ply (with log_std_*),
 // points_filtered.ply (the native default filter), lidar_only.ply.
 
