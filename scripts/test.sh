@@ -31,7 +31,9 @@ echo "== native tests (cargo test --workspace)"
 # One build of every target first (the CLI tests run target/debug/silvr): building `-p silvr` on its own
 # resolved dependency features differently and compiled naga, wgpu and image a second time.
 cargo build --workspace --all-targets
-cargo test --workspace
+# The end-to-end tests run that build's target/debug/silvr instead of `cargo build -p silvr`, which
+# resolves features for one package and recompiled half the dependency tree.
+SILVR_TESTS_PREBUILT=1 cargo test --workspace
 
 echo "== evaluator cross-check against SciPy cKDTree (and scikit-image SSIM)"
 python3 scripts/crosscheck_eval.py

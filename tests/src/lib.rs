@@ -17,8 +17,20 @@ pub fn silvr_bin() -> PathBuf {
     p.join(profile).join("silvr")
 }
 
-/// Builds the `silvr` binary (once per test process is enough; cargo makes repeats cheap).
+/// Builds the `silvr` binary (once per test process is enough; cargo makes repeats cheap), or, where
+/// `SILVR_TESTS_PREBUILT` is set (scripts/test.sh, after `cargo build --workspace --all-targets`), uses the
+/// one already built: `cargo build -p silvr` resolves dependency features for that one package, unlike
+/// the workspace build, and so compiled image, wgpu, silvr-core and silvr again (~125 s in CI).
 pub fn build_silvr() -> PathBuf {
+    if std::env::var_os("SILVR_TESTS_PREBUILT").is_some() {
+        let bin = silvr_bin();
+        assert!(
+            bin.is_file(),
+            "SILVR_TESTS_PREBUILT is set but {} is missing",
+            bin.display()
+        );
+        return bin;
+    }
     let mut cmd = Command::new(env!("CARGO"));
     cmd.current_dir(workspace_root())
         .args(["build", "-q", "-p", "silvr"]);
