@@ -64,7 +64,7 @@ fi
 rustup target list --installed 2>/dev/null | grep -q wasm32-unknown-unknown || { log "rustup target add wasm32"; rustup target add wasm32-unknown-unknown; }
 
 # The two Rust tools are built unoptimised, without debug info or LTO, into one shared target folder (their
-# common crates compile once): on 2 cores 41 s + 135 s instead of 81 s + 189 s at opt-level 1. Their run
+# common crates compile once): on 2 cores 42 s + 115 s instead of 81 s + 189 s at opt-level 1. Their run
 # time is not the build's: binding our 37 MB worker takes 1.2 s instead of 0.4 s, trunk only copies files.
 tools_env=(CARGO_PROFILE_RELEASE_LTO=off CARGO_PROFILE_RELEASE_CODEGEN_UNITS=16 CARGO_PROFILE_RELEASE_OPT_LEVEL=0
   CARGO_PROFILE_RELEASE_DEBUG=false CARGO_TARGET_DIR="${TMPDIR:-/tmp}/silvr-tools-build")

@@ -28,11 +28,10 @@ if [ "$(id -u)" = 0 ] && [ "${SILVR_NO_SLURM:-0}" != 1 ] && command -v apt-get >
 fi
 
 echo "== native tests (cargo test --workspace)"
-# One build of every target first (the CLI tests run target/debug/silvr): building `-p silvr` on its own
-# resolved dependency features differently and compiled naga, wgpu and image a second time.
+# One build of every target first; the end-to-end tests then run its target/debug/silvr
+# (SILVR_TESTS_PREBUILT) instead of `cargo build -p silvr`, which resolves features for one package and
+# compiled naga, wgpu, image and our crates a second time.
 cargo build --workspace --all-targets
-# The end-to-end tests run that build's target/debug/silvr instead of `cargo build -p silvr`, which
-# resolves features for one package and recompiled half the dependency tree.
 SILVR_TESTS_PREBUILT=1 cargo test --workspace
 
 echo "== evaluator cross-check against SciPy cKDTree (and scikit-image SSIM)"
