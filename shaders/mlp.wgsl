@@ -14,18 +14,19 @@
 // Entry points (64 threads per workgroup; dispatch possibly folded into 2-D:
 // index = (wg.y * nwg.x + wg.x) * 64 + local index). Each pipeline is specialised to one layer's shape by
 // the prelude the engine compiles in front of this file (see below). lavapipe (the CPU driver) runs 8 lanes
-// per SIMD vector and pays dearly for per-lane loads from storage, while a load whose address is the same
-// on every lane is cheaper from workgroup memory than from a storage or uniform buffer (measured); the
-// kernels are shaped around that, and around its coroutine barriers (no barrier inside a loop that keeps
-// per-row arrays alive: one dispatch per layer instead).
+// per SIMD vector and pays dearly for per-lane loads from storage, while a workgroup-memory load whose
+// address is the same on every lane is one scalar load and a broadcast, but only outside all control flow
+// (inside a loop or branch it also goes lane by lane); the kernels are shaped around that, and around its
+// coroutine barriers (no barrier inside a loop that keeps per-row arrays alive: one dispatch per layer).
 //   forward_layer    one thread per row: the layer's weights are staged in workgroup memory as
 //                    [fan_out][ceil(fan_in / 4)] vec4 rows (zero-padded; the padding lives only there), the
-//                    row's input sits in a private vec4 array. Input from `input` (layer 0) or `saved`;
-//                    output to `saved` (hidden) or `output` (last).
+//                    row's input sits in a private vec4 array; the product is the prelude's straight-line
+//                    layer_dense. Input from `input` (layer 0) or `saved`; output to `saved` (hidden) or
+//                    `output` (last).
 //   backward_layer   one thread per row, last layer first: the layer's output gradient (from dL/doutput for
 //                    the last layer, else from scratch), times the transposed weights (staged as
-//                    [fan_in][ceil(fan_out / 4)]), masked by the ReLU below, into the scratch slot of the
-//                    layer below, or into dL/dinput for layer 0.
+//                    [fan_in][ceil(fan_out / 4)]; the prelude's layer_dense_t), masked by the ReLU below,
+//                    into the scratch slot of the layer below, or into dL/dinput for layer 0.
 //   backward_weights one workgroup per (chunk of rows, block of WB input columns) of one layer, one lane
 //                    per output j: sum over the chunk's rows of delta_j * a_k, the first block also of
 //                    delta_j (the bias), 64-row tiles of inputs staged in workgroup memory; one partial
@@ -80,6 +81,9 @@ fn group_index(wg: vec3<u32>, nwg: vec3<u32>) -> u32 {
 // arrays in per-lane scratch memory (and a GPU keeps them in local memory).
 const K4: u32 = max((L_IN + 3u) / 4u, 1u);
 const M4: u32 = max((L_OUT + 3u) / 4u, 1u);
+// Lengths of the prelude's layer_dense / layer_dense_t results (a WGSL array cannot be empty).
+const O_N: u32 = max(L_OUT, 1u);
+const I_N: u32 = max(L_IN, 1u);
 
 fn w_at(j: u32, k: u32) -> f32 {
     if (j < L_OUT && k < L_IN) {
@@ -116,42 +120,63 @@ fn sigmoid1(z: f32) -> f32 {
     return 1.0 / (1.0 + exp(-z));
 }
 
-// Row r's input to the layer (the network input, or the saved outputs of the layer below), zero past fan_in.
+// Input k of row r (the network input, or the saved outputs of the layer below), zero past fan_in.
+fn in_at(r: u32, k: u32) -> f32 {
+    if (k >= L_IN) {
+        return 0.0;
+    }
+    if (L_FIRST) {
+        return input[r * L_IN + k];
+    }
+    return saved[r * SAVED_STRIDE + L_BELOW_SAVED + k];
+}
+
+// Row r's input to the layer, four at a time: a loop of at most 16 that the driver unrolls (a loop over
+// single words, up to 64, stayed a loop on lavapipe and left the row in per-lane scratch memory).
 fn layer_row(r: u32) -> array<vec4<f32>, K4> {
     var a: array<vec4<f32>, K4>;
-    for (var k = 0u; k < L_IN; k++) {
-        if (L_FIRST) {
-            a[k / 4u][k & 3u] = input[r * L_IN + k];
-        } else {
-            a[k / 4u][k & 3u] = saved[r * SAVED_STRIDE + L_BELOW_SAVED + k];
-        }
+    for (var q = 0u; q < K4; q++) {
+        let k = 4u * q;
+        a[q] = vec4<f32>(in_at(r, k), in_at(r, k + 1u), in_at(r, k + 2u), in_at(r, k + 3u));
     }
     return a;
 }
 
+// Row r's pre-activation gradient of output j (zero past fan_out): from dL/doutput for the last layer
+// (times y (1 - y) under the sigmoid), else from scratch.
+fn delta_at(r: u32, j: u32) -> f32 {
+    if (j >= L_OUT) {
+        return 0.0;
+    }
+    if (L_LAST) {
+        var v = d_output[r * L_OUT + j];
+        if (L_SIGMOID) {
+            let y = saved[r * SAVED_STRIDE + L_SAVED + j];
+            v *= y * (1.0 - y);
+        }
+        return v;
+    }
+    return scratch[r * DELTA_STRIDE + L_DELTA + j];
+}
+
+// Both per-row kernels run their matrix product outside all control flow (see layer_products in
+// field/mlp.rs): no early return; a lane past the batch (or in a whole workgroup past it, the tail of a
+// folded dispatch) works on the last row and stores nothing. The engine never dispatches them for n = 0.
 @compute @workgroup_size(64)
 fn forward_layer(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                  @builtin(local_invocation_index) li: u32) {
     let n = mlp.n;
-    // Whole workgroups past the batch (a folded dispatch's tail) leave before the barrier.
     let first = group_index(wg, nwg) * WG;
-    if (first >= n) {
-        return;
-    }
     stage_weights(li);
     workgroupBarrier();
-    let r = first + li;
-    if (r >= n) {
+    let live = first + li < n;
+    let r = min(first + li, n - 1u);
+    let z = layer_dense(layer_row(r));
+    if (!live) {
         return;
     }
-    let a = layer_row(r);
-    // One output at a time: a private row of inputs against one broadcast weight row.
     for (var j = 0u; j < L_OUT; j++) {
-        var acc = vec4<f32>(0.0);
-        for (var q = 0u; q < K4; q++) {
-            acc += a[q] * ws[j * K4 + q];
-        }
-        var y = params[L_B + j] + (acc.x + acc.y) + (acc.z + acc.w);
+        var y = params[L_B + j] + z[j];
         if (!L_LAST) {
             y = max(y, 0.0);
             saved[r * SAVED_STRIDE + L_SAVED + j] = y;
@@ -170,46 +195,38 @@ fn backward_layer(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
                   @builtin(local_invocation_index) li: u32) {
     let n = mlp.n;
     let first = group_index(wg, nwg) * WG;
-    if (first >= n) {
-        return;
-    }
-    // Layer 0's transposed product is dL/dinput: skipped when not asked for.
+    // Layer 0's transposed product is dL/dinput: not stored when not asked for.
     let product = !L_FIRST || (mlp.flags & FLAG_D_INPUT) != 0u;
     if (product) {
         stage_weights_transposed(li);
     }
     workgroupBarrier();
-    let r = first + li;
-    if (r >= n) {
+    let live = first + li < n;
+    let r = min(first + li, n - 1u);
+    var g: array<vec4<f32>, M4>;
+    for (var q = 0u; q < M4; q++) {
+        let j = 4u * q;
+        g[q] = vec4<f32>(delta_at(r, j), delta_at(r, j + 1u), delta_at(r, j + 2u), delta_at(r, j + 3u));
+    }
+    let d = layer_dense_t(g);
+    if (!live) {
         return;
     }
-    var g: array<vec4<f32>, M4>;
     if (L_LAST) {
-        // The output layer: delta = dL/dy * y (1 - y) under the sigmoid, dL/dy otherwise; kept for
-        // backward_weights.
-        for (var j = 0u; j < L_OUT; j++) {
-            var v = d_output[r * L_OUT + j];
-            if (L_SIGMOID) {
-                let y = saved[r * SAVED_STRIDE + L_SAVED + j];
-                v *= y * (1.0 - y);
+        // The output layer's deltas, kept for backward_weights.
+        for (var q = 0u; q < M4; q++) {
+            for (var c = 0u; c < 4u; c++) {
+                if (4u * q + c < L_OUT) {
+                    scratch[r * DELTA_STRIDE + L_DELTA + 4u * q + c] = g[q][c];
+                }
             }
-            g[j / 4u][j & 3u] = v;
-            scratch[r * DELTA_STRIDE + L_DELTA + j] = v;
-        }
-    } else {
-        for (var j = 0u; j < L_OUT; j++) {
-            g[j / 4u][j & 3u] = scratch[r * DELTA_STRIDE + L_DELTA + j];
         }
     }
     if (!product) {
         return;
     }
     for (var k = 0u; k < L_IN; k++) {
-        var acc = vec4<f32>(0.0);
-        for (var q = 0u; q < M4; q++) {
-            acc += g[q] * ws[k * M4 + q];
-        }
-        var v = (acc.x + acc.y) + (acc.z + acc.w);
+        var v = d[k];
         if (!L_FIRST) {
             // ReLU': the unit was active iff its saved output is positive. select, not a product, so a
             // dead unit's gradient is exactly 0 even if the sum overflowed.

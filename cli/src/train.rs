@@ -404,7 +404,18 @@ fn profile(a: &BenchArgs, steps: u32) -> Result<()> {
         a.model, a.rays, mode
     );
     let out = print_profile(&rows, steps, wall * steps as f64);
-    // Inference: one held-out view (or a training view) of this field, pass by pass.
+    // Inference: one held-out view (or a training view) pass by pass, of this field or, with
+    // `--render-checkpoint`, of a trained one (whose samples concentrate on surfaces).
+    if let Some(p) = &a.render_checkpoint {
+        let ck = Checkpoint::load(p)?;
+        let data = TrainData::load(&a.dataset, &LoadOptions::default())?;
+        t = Trainer::resume(data, ck, Backend::Wgpu(gpu.clone()))?;
+        if let Some(i) = t.data.val.first().copied() {
+            let (rays, _) = t.view_rays(i);
+            pollster::block_on(t.render(&rays[..rays.len().min(256)], false))?;
+        }
+        gpu.profile_take();
+    }
     let inference = match t.data.val.first().or(t.data.train.first()).copied() {
         Some(i) => {
             let (rays, _) = t.view_rays(i);

@@ -13,13 +13,16 @@
 //! by step 9, 2.4e-2 by step 49, single steps up to 0.5 later). Asserted: the first ten steps' losses
 //! agree to 1e-3, the 50-step means of the whole curve to 5 % (measured within 2 %), and the outcomes
 //! to the bounds: held-out PSNR within 0.5 dB, accuracy within 15 %; the uncertainty pass over
-//! one field on both engines: Fisher diagonals within 1e-3 of the largest entry, AUSE within 0.01.
+//! one field on both engines: Fisher diagonals within 2e-3 of the largest entry, AUSE within 0.01.
 //!
 //! That field is the CPU-trained one, which is the same bits on every run (the WGSL run is not: its
 //! atomic adds make each WGSL-trained field a little different). Over a fixed field the two passes differ
 //! only by f32 rounding, but a trained field's sharp density peaks amplify a sample position's rounding
 //! into its Jacobian, by an amount that depends on the field: over WGSL-trained fields the worst entry
 //! ranged from 1.7e-4 to 1.8e-3 of the largest between runs, so a bound on those would be a coin toss.
+//! Over the CPU field the worst entry was 1.7e-4 (colour) and 4.7e-4 (depth) with the MLP kernels' loops,
+//! 6.7e-4 and 1.1e-3 since their products are straight-line code (2026-12-03: same sums, rounded
+//! differently by the driver's compiler), hence 2e-3.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -224,7 +227,7 @@ fn wgsl_training_matches_the_cpu_reference_over_a_run() {
         eprintln!(
             "Fisher {what}: worst difference {worst:.2e} of the largest entry, L1 difference {l1:.2e} of the total"
         );
-        assert!(worst < 1e-3, "Fisher {what}: {worst}");
+        assert!(worst < 2e-3, "Fisher {what}: {worst}");
     }
     // AUSE of the CPU cloud by each engine's read-out.
     let frame = cpu.data.frame;
