@@ -35,8 +35,10 @@
 //                    written over d_params, or added to it when accumulating. No float atomics anywhere.
 
 const WG: u32 = 64u;
-// Rows of the input tile staged per step of backward_weights.
-const TILE_ROWS: u32 = 64u;
+// Rows of the input tile backward_weights stages: its whole chunk (CHUNK, from the prelude); and per step
+// of backward_weights_rows.
+const TILE_ROWS: u32 = CHUNK;
+const ROWS_TILE: u32 = 64u;
 
 const FLAG_D_INPUT: u32 = 1u;
 const FLAG_ACCUMULATE: u32 = 2u;
@@ -65,8 +67,9 @@ struct Mlp {
 
 // One layer's weights (64 x 64 f32 = 16 KiB, the portable limit): forward_layer and backward_layer.
 var<workgroup> ws: array<vec4<f32>, 1024>;
-// TILE_ROWS x WB layer inputs: backward_weights.
-var<workgroup> tile: array<vec4<f32>, TILE_ROWS * WB / 4u>;
+// Layer inputs staged by backward_weights (TILE_ROWS x WB) and backward_weights_rows (ROWS_TILE x WB):
+// 16 KiB, the portable limit.
+var<workgroup> tile: array<vec4<f32>, 1024>;
 
 fn group_index(wg: vec3<u32>, nwg: vec3<u32>) -> u32 {
     return wg.y * nwg.x + wg.x;
@@ -257,9 +260,57 @@ fn input4(r: u32, k: u32) -> vec4<f32> {
     return v;
 }
 
+// The chunk's rows staged at once (TILE_ROWS = CHUNK), the sums over them the prelude's straight-line
+// weight_sums (one lane-uniform tile load per four columns and row, outside all control flow: see
+// layer_products in field/mlp.rs); rows past the batch are zeros in the tile and in the deltas.
+fn delta_or_zero(row: u32, j: u32) -> f32 {
+    let v = scratch[min(row, mlp.n - 1u) * DELTA_STRIDE + L_DELTA + min(j, O_N - 1u)];
+    return select(0.0, v, row < mlp.n);
+}
+
 @compute @workgroup_size(64)
 fn backward_weights(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                     @builtin(local_invocation_index) li: u32) {
+    // A folded dispatch's tail repeats the last workgroup's sums and stores nothing (no early return: it
+    // would put the sums inside control flow).
+    let groups = mlp.chunks * NB;
+    let live_group = group_index(wg, nwg) < groups;
+    let gi = min(group_index(wg, nwg), groups - 1u);
+    let chunk = gi / NB;
+    let kb = (gi - chunk * NB) * WB;
+    let j = li;
+    let r0 = chunk * TILE_ROWS;
+    // tile[row * WB4 + q] = inputs kb + 4q .. kb + 4q + 4 of row r0 + row: the same for every lane, so
+    // the sums read them as broadcasts.
+    for (var s = li; s < TILE_ROWS * WB4; s += WG) {
+        let row = s / WB4;
+        let q = s - row * WB4;
+        let r = r0 + row;
+        tile[s] = select(vec4<f32>(0.0), input4(min(r, mlp.n - 1u), kb + 4u * q), r < mlp.n);
+    }
+    workgroupBarrier();
+    let sums = weight_sums(r0, j);
+    if (!live_group || j >= L_OUT) {
+        return;
+    }
+    let out = mlp.partial_offset + chunk * mlp.n_params;
+    for (var c = 0u; c < WB; c++) {
+        let k = kb + c;
+        if (k < L_IN) {
+            scratch[out + L_W + j * L_IN + k] = sums[c / 4u][c & 3u];
+        }
+    }
+    if (kb == 0u) {
+        scratch[out + L_B + j] = sums[WB4].x;
+    }
+}
+
+// backward_weights for a narrow layer (fewer than 32 outputs, as the engine picks): the same sums in loops
+// over 64-row tiles, where only the lanes of live outputs run them (the straight-line sums would run all
+// 64 lanes for a handful of outputs).
+@compute @workgroup_size(64)
+fn backward_weights_rows(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                         @builtin(local_invocation_index) li: u32) {
     let gi = group_index(wg, nwg);
     if (gi >= mlp.chunks * NB) {
         return;
@@ -272,11 +323,9 @@ fn backward_weights(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroup
     let r1 = min(r0 + mlp.chunk_rows, mlp.n);
     var acc: array<vec4<f32>, WB4>;
     var bias = 0.0;
-    for (var t = r0; t < r1; t += TILE_ROWS) {
-        let rows = min(TILE_ROWS, r1 - t);
+    for (var t = r0; t < r1; t += ROWS_TILE) {
+        let rows = min(ROWS_TILE, r1 - t);
         workgroupBarrier();
-        // tile[row * WB4 + q] = inputs kb + 4q .. kb + 4q + 4 of row t + row: the same for every lane,
-        // so the sums below read them as broadcasts.
         for (var s = li; s < rows * WB4; s += WG) {
             let row = s / WB4;
             let q = s - row * WB4;

@@ -50,9 +50,18 @@ pub const MAX_HIDDEN_LAYERS: usize = 8;
 pub const CHUNK_ROWS: usize = 256;
 
 const WORKGROUP: u32 = 64;
-/// Most input columns per parameter-gradient workgroup (`WB` in mlp.wgsl; 16 and 64 were slower on
-/// lavapipe: more passes over the deltas, or accumulators spilled).
-const BLOCK: usize = 32;
+/// Most input columns per parameter-gradient workgroup (`WB` in mlp.wgsl): 16 for the straight-line sums
+/// of a wide layer (its 256-row input tile then fills the 16 KiB of workgroup memory), 32 for the loops of
+/// a narrow one (16 and 64 were slower there on lavapipe: more passes over the deltas, or accumulators
+/// spilled).
+const BLOCK: usize = 16;
+const BLOCK_NARROW: usize = 32;
+/// Layers with fewer outputs take `backward_weights_rows`, whose loops run only the live outputs' lanes.
+const NARROW_OUTPUTS: usize = 32;
+
+fn narrow(layer: &LayerInfo) -> bool {
+    layer.fan_out < NARROW_OUTPUTS
+}
 
 const KERNEL: Kernel = Kernel {
     name: "mlp",
@@ -750,7 +759,8 @@ struct MlpUniform {
 /// Input columns per parameter-gradient workgroup of `layer`: [`BLOCK`], or fewer (a multiple of 4) for
 /// a narrower layer, so no workgroup sums columns that do not exist.
 fn layer_block(layer: &LayerInfo) -> usize {
-    BLOCK.min(layer.fan_in.next_multiple_of(4)).max(4)
+    let most = if narrow(layer) { BLOCK_NARROW } else { BLOCK };
+    most.min(layer.fan_in.next_multiple_of(4)).max(4)
 }
 
 /// Parameter-gradient workgroups for one layer and chunk: its input columns [`layer_block`] at a time
@@ -799,7 +809,7 @@ fn layer_prelude(cfg: &MlpConfig, l: Option<usize>) -> String {
         "const L_IN: u32 = {}u;\nconst L_OUT: u32 = {}u;\nconst L_W: u32 = {}u;\nconst L_B: u32 = {}u;\n\
          const L_SAVED: u32 = {}u;\nconst L_DELTA: u32 = {}u;\nconst L_FIRST: bool = {};\nconst L_LAST: bool = {};\n\
          const L_SIGMOID: bool = {};\nconst L_BELOW_SAVED: u32 = {}u;\nconst L_BELOW_DELTA: u32 = {}u;\n\
-         const SAVED_STRIDE: u32 = {}u;\nconst DELTA_STRIDE: u32 = {}u;\nconst WB: u32 = {}u;\n",
+         const SAVED_STRIDE: u32 = {}u;\nconst DELTA_STRIDE: u32 = {}u;\nconst WB: u32 = {}u;\nconst CHUNK: u32 = {}u;\n",
         ly.fan_in,
         ly.fan_out,
         ly.weights,
@@ -814,7 +824,8 @@ fn layer_prelude(cfg: &MlpConfig, l: Option<usize>) -> String {
         cfg.saved_per_row(),
         cfg.delta_per_row(),
         layer_block(&ly),
-    ) + &layer_products(ly.fan_in, ly.fan_out)
+        CHUNK_ROWS,
+    ) + &layer_products(ly.fan_in, ly.fan_out, layer_block(&ly), !narrow(&ly))
 }
 
 /// The layer's matrix products as straight-line WGSL, one block per output (`layer_dense`, forward) and per
@@ -823,7 +834,7 @@ fn layer_prelude(cfg: &MlpConfig, l: Option<usize>) -> String {
 /// is the same on every lane as one scalar load and a broadcast only outside all control flow; inside any
 /// loop it loads lane by lane. With a loop over the outputs the forward of a 64 × 64 layer took 50 ms for
 /// 49 k rows, straight-line 14-20 ms (2026-12-03). GPUs unroll these loops themselves; the code is the same.
-fn layer_products(fan_in: usize, fan_out: usize) -> String {
+fn layer_products(fan_in: usize, fan_out: usize, block: usize, sums: bool) -> String {
     let mut s = String::from(
         "fn layer_dense(a: array<vec4<f32>, K4>) -> array<f32, O_N> {\n    var o: array<f32, O_N>;\n",
     );
@@ -839,6 +850,25 @@ fn layer_products(fan_in: usize, fan_out: usize) -> String {
             "    {{ var acc = vec4<f32>(0.0); for (var q = 0u; q < M4; q++) {{ acc += g[q] * ws[{k}u * M4 + q]; }} \
              o[{k}] = (acc.x + acc.y) + (acc.z + acc.w); }}\n"
         );
+    }
+    s += "    return o;\n}\n";
+    // backward_weights: lane j's sums over the staged chunk of δ_j · a_k for the block's columns (one
+    // vec4 per four), and of δ_j (the bias) in the last entry's x.
+    let b4 = block / 4;
+    s += &format!(
+        "fn weight_sums(r0: u32, j: u32) -> array<vec4<f32>, {}> {{\n    var o: array<vec4<f32>, {}>;\n\
+         var d: array<f32, CHUNK>;\n    for (var r = 0u; r < CHUNK; r++) {{ d[r] = delta_or_zero(r0 + r, j); }}\n",
+        b4 + 1,
+        b4 + 1
+    );
+    // A narrow layer's sums are backward_weights_rows' loops: no straight-line ones (its 256 x 32 input
+    // tile would not fit).
+    for r in (0..CHUNK_ROWS).filter(|_| sums) {
+        s += &format!("    o[{b4}].x += d[{r}];");
+        for q in 0..b4 {
+            s += &format!(" o[{q}] += d[{r}] * tile[{}u];", r * b4 + q);
+        }
+        s += "\n";
     }
     s + "    return o;\n}\n"
 }
@@ -1021,7 +1051,11 @@ pub async fn record_backward(
                 encoder,
                 &KERNEL,
                 &layer_prelude(config, Some(l)),
-                "backward_weights",
+                if narrow(ly) {
+                    "backward_weights_rows"
+                } else {
+                    "backward_weights"
+                },
                 &[
                     (0, &u),
                     (2, buffers.input),
