@@ -1229,16 +1229,17 @@ mod tests {
             c.scratch_words(1000),
             1000 * 131 + 1000usize.div_ceil(CHUNK_ROWS) * c.n_params()
         );
-        // 32 input columns per parameter-gradient block (the first also sums the bias); a narrower
-        // layer's block is its width rounded up to a multiple of 4.
+        // 16 input columns per parameter-gradient block of a wide layer (≥ 32 outputs), 32 of a narrow
+        // one (the first block also sums the bias); a layer with fewer inputs has one block, its width
+        // rounded up to a multiple of 4.
         let blocks: Vec<usize> = c.layers().iter().map(layer_blocks).collect();
-        assert_eq!(blocks, vec![2, 2, 2]);
+        assert_eq!(blocks, vec![4, 4, 2]);
         let widths: Vec<usize> = MlpConfig::nerfacto_density()
             .layers()
             .iter()
             .map(layer_block)
             .collect();
-        assert_eq!(widths, vec![32, 32]);
+        assert_eq!(widths, vec![16, 32]);
         let narrow = LayerInfo {
             fan_in: 10,
             fan_out: 16,
