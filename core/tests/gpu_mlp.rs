@@ -731,3 +731,61 @@ fn bench_nerfacto_heads() {
         );
     }
 }
+
+/// The loop form of the kernels (what every adapter but lavapipe runs: `GpuOptions::loop_kernels`) against
+/// the CPU reference on nerfacto's heads and an odd shape: forward, and the full backward.
+#[test]
+fn loop_kernels_match_cpu() {
+    let Ok(gpu) = pollster::block_on(silvr_core::gpu::Gpu::new(silvr_core::gpu::GpuOptions {
+        poison: Some(POISON),
+        loop_kernels: true,
+        ..Default::default()
+    })) else {
+        assert!(std::env::var_os("SILVR_REQUIRE_GPU").is_none(), "no GPU");
+        return;
+    };
+    assert!(!gpu.straight_line_kernels());
+    for (i, c) in [
+        MlpConfig::nerfacto_density(),
+        MlpConfig::nerfacto_colour(),
+        cfg(17, 9, 3, 2, true),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let n = 700;
+        let params = c.init_params(11 + i as u64);
+        let input = random_values(50 + i as u64, n * c.input);
+        let d_out = random_values(90 + i as u64, n * c.output);
+        let want = forward_cpu(&c, &params, &input).unwrap();
+        let got = pollster::block_on(forward_gpu(&gpu, &c, &params, &input)).unwrap();
+        for (a, b) in got.output.iter().zip(&want.output) {
+            assert!(
+                (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
+                "{c:?}: forward {a} vs {b}"
+            );
+        }
+        let gw = backward_cpu(&c, &params, &input, &want.saved, &d_out, true).unwrap();
+        let gg = pollster::block_on(backward_gpu(
+            &gpu,
+            &c,
+            &params,
+            &input,
+            &want.saved,
+            &d_out,
+            true,
+        ))
+        .unwrap();
+        let scale = gw.params.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
+        for (a, b) in gg.params.iter().zip(&gw.params) {
+            assert!((a - b).abs() <= 1e-4 * scale, "{c:?}: dparams {a} vs {b}");
+        }
+        let (xi, xw) = (gg.input.unwrap(), gw.input.unwrap());
+        for (a, b) in xi.iter().zip(&xw) {
+            assert!(
+                (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
+                "{c:?}: dinput {a} vs {b}"
+            );
+        }
+    }
+}

@@ -25,7 +25,7 @@
 //! differently by the driver's compiler), hence 2e-3.
 
 use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
+use std::sync::{Mutex, MutexGuard, OnceLock};
 
 use silvr_core::eval::{self, metrics::GeometryOptions};
 use silvr_core::field::model::ModelConfig;
@@ -41,6 +41,13 @@ use silvr_core::uncertainty::{self, sparsify, UncertaintyConfig};
 const STEPS: u32 = 200;
 const RAYS: usize = 512;
 const SEED: u64 = 1;
+
+/// Held by each test for its whole run: side by side, lavapipe's threads and the CPU reference's rayon
+/// pool oversubscribe a 2-core machine (measured 123 s for both tests together, 113 s one after the other).
+fn one_at_a_time() -> MutexGuard<'static, ()> {
+    static LOCK: Mutex<()> = Mutex::new(());
+    LOCK.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
 
 /// A device, or `None` (skipped with a message) when there is none and the run does not demand one.
 fn gpu() -> Option<Gpu> {
@@ -115,6 +122,7 @@ fn window_means(v: &[f64], w: usize) -> Vec<f64> {
 
 #[test]
 fn wgsl_training_matches_the_cpu_reference_over_a_run() {
+    let _serial = one_at_a_time();
     let Some(gpu) = gpu() else { return };
     let dataset = world(&gpu);
     let mut cpu = trainer(dataset, Backend::Cpu, STEPS);
@@ -253,6 +261,7 @@ fn wgsl_training_matches_the_cpu_reference_over_a_run() {
 /// same step counter, and losses within float tolerance of the uninterrupted run's.
 #[test]
 fn a_wgsl_checkpoint_resumes_the_same_run() {
+    let _serial = one_at_a_time();
     let Some(gpu) = gpu() else { return };
     let dataset = world(&gpu);
     const N: u32 = 30;

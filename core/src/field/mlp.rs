@@ -756,17 +756,28 @@ struct MlpUniform {
     head: [u32; 8],
 }
 
-/// Input columns per parameter-gradient workgroup of `layer`: [`BLOCK`], or fewer (a multiple of 4) for
-/// a narrower layer, so no workgroup sums columns that do not exist.
-fn layer_block(layer: &LayerInfo) -> usize {
-    let most = if narrow(layer) { BLOCK_NARROW } else { BLOCK };
+/// Whether `layer`'s parameter gradients take `backward_weights_rows` (loops) rather than the straight-line
+/// `backward_weights`: on every adapter but lavapipe ([`Gpu::straight_line_kernels`]), and there for
+/// narrow layers.
+fn rows_kernel(layer: &LayerInfo, straight: bool) -> bool {
+    !straight || narrow(layer)
+}
+
+/// Input columns per parameter-gradient workgroup of `layer`: [`BLOCK`] or [`BLOCK_NARROW`], or fewer (a
+/// multiple of 4) for a narrower layer, so no workgroup sums columns that do not exist.
+fn layer_block(layer: &LayerInfo, straight: bool) -> usize {
+    let most = if rows_kernel(layer, straight) {
+        BLOCK_NARROW
+    } else {
+        BLOCK
+    };
     most.min(layer.fan_in.next_multiple_of(4)).max(4)
 }
 
 /// Parameter-gradient workgroups for one layer and chunk: its input columns [`layer_block`] at a time
 /// (the first also sums the bias).
-fn layer_blocks(layer: &LayerInfo) -> usize {
-    layer.fan_in.div_ceil(layer_block(layer)).max(1)
+fn layer_blocks(layer: &LayerInfo, straight: bool) -> usize {
+    layer.fan_in.div_ceil(layer_block(layer, straight)).max(1)
 }
 
 fn uniform_for(cfg: &MlpConfig, n: u32, flags: u32) -> MlpUniform {
@@ -788,7 +799,7 @@ fn uniform_for(cfg: &MlpConfig, n: u32, flags: u32) -> MlpUniform {
 
 /// WGSL constants that specialise `forward_layer` / `backward_layer` to layer `l` of `cfg` (see the header
 /// of mlp.wgsl); `None` gives the neutral prelude the shape-independent entry points compile with.
-fn layer_prelude(cfg: &MlpConfig, l: Option<usize>) -> String {
+fn layer_prelude(cfg: &MlpConfig, l: Option<usize>, straight: bool) -> String {
     let layers = cfg.layers();
     let (ly, below) = match l {
         Some(l) => (layers[l], l.checked_sub(1).map(|b| layers[b])),
@@ -823,9 +834,15 @@ fn layer_prelude(cfg: &MlpConfig, l: Option<usize>) -> String {
         below.map_or(0, |b| b.delta),
         cfg.saved_per_row(),
         cfg.delta_per_row(),
-        layer_block(&ly),
+        layer_block(&ly, straight),
         CHUNK_ROWS,
-    ) + &layer_products(ly.fan_in, ly.fan_out, layer_block(&ly), !narrow(&ly))
+    ) + &layer_products(
+        ly.fan_in,
+        ly.fan_out,
+        layer_block(&ly, straight),
+        straight,
+        !rows_kernel(&ly, straight),
+    )
 }
 
 /// The layer's matrix products as straight-line WGSL, one block per output (`layer_dense`, forward) and per
@@ -833,8 +850,29 @@ fn layer_prelude(cfg: &MlpConfig, l: Option<usize>) -> String {
 /// in workgroup memory. Why generated: lavapipe (Mesa's CPU driver) loads a workgroup word whose address
 /// is the same on every lane as one scalar load and a broadcast only outside all control flow; inside any
 /// loop it loads lane by lane. With a loop over the outputs the forward of a 64 × 64 layer took 50 ms for
-/// 49 k rows, straight-line 14-20 ms (2026-12-03). GPUs unroll these loops themselves; the code is the same.
-fn layer_products(fan_in: usize, fan_out: usize, block: usize, sums: bool) -> String {
+/// 49 k rows, straight-line 14-20 ms (2026-12-03). Other adapters get the same products as loops
+/// (`straight` false): SwiftShader (Chromium's software WebGPU) trained 2x slower on the straight-line code,
+/// and GPUs unroll such loops themselves.
+fn layer_products(
+    fan_in: usize,
+    fan_out: usize,
+    block: usize,
+    straight: bool,
+    sums: bool,
+) -> String {
+    if !straight {
+        return "fn layer_dense(a: array<vec4<f32>, K4>) -> array<f32, O_N> {\n    var o: array<f32, O_N>;\n    \
+                for (var j = 0u; j < L_OUT; j++) {\n        var acc = vec4<f32>(0.0);\n        \
+                for (var q = 0u; q < K4; q++) { acc += a[q] * ws[j * K4 + q]; }\n        \
+                o[j] = (acc.x + acc.y) + (acc.z + acc.w);\n    }\n    return o;\n}\n\
+                fn layer_dense_t(g: array<vec4<f32>, M4>) -> array<f32, I_N> {\n    var o: array<f32, I_N>;\n    \
+                for (var k = 0u; k < L_IN; k++) {\n        var acc = vec4<f32>(0.0);\n        \
+                for (var q = 0u; q < M4; q++) { acc += g[q] * ws[k * M4 + q]; }\n        \
+                o[k] = (acc.x + acc.y) + (acc.z + acc.w);\n    }\n    return o;\n}\n\
+                fn weight_sums(r0: u32, j: u32) -> array<vec4<f32>, WB4 + 1u> {\n    \
+                var o: array<vec4<f32>, WB4 + 1u>;\n    return o;\n}\n"
+            .to_string();
+    }
     let mut s = String::from(
         "fn layer_dense(a: array<vec4<f32>, K4>) -> array<f32, O_N> {\n    var o: array<f32, O_N>;\n",
     );
@@ -943,6 +981,7 @@ pub async fn record_forward(
     buffers: &ForwardBuffers<'_>,
 ) -> Result<(), GpuError> {
     check_batch(config, n)?;
+    let straight = gpu.straight_line_kernels();
     let rows = n as usize;
     need(buffers.params, config.n_params(), "parameter")?;
     need(buffers.input, rows * config.input, "input")?;
@@ -960,7 +999,7 @@ pub async fn record_forward(
         gpu.dispatch_variant(
             encoder,
             &KERNEL,
-            &layer_prelude(config, Some(l)),
+            &layer_prelude(config, Some(l), straight),
             "forward_layer",
             &[
                 (0, &u),
@@ -989,6 +1028,7 @@ pub async fn record_backward(
     accumulate: bool,
 ) -> Result<(), GpuError> {
     check_batch(config, n)?;
+    let straight = gpu.straight_line_kernels();
     let rows = n as usize;
     need(buffers.params, config.n_params(), "parameter")?;
     need(buffers.input, rows * config.input, "input")?;
@@ -1028,7 +1068,7 @@ pub async fn record_backward(
             gpu.dispatch_variant(
                 encoder,
                 &KERNEL,
-                &layer_prelude(config, Some(l)),
+                &layer_prelude(config, Some(l), straight),
                 "backward_layer",
                 &[
                     (0, &u),
@@ -1046,12 +1086,12 @@ pub async fn record_backward(
             return Ok(());
         }
         for (l, ly) in config.layers().iter().enumerate() {
-            let groups = MlpConfig::chunks(rows) as u32 * layer_blocks(ly) as u32;
+            let groups = MlpConfig::chunks(rows) as u32 * layer_blocks(ly, straight) as u32;
             gpu.dispatch_variant(
                 encoder,
                 &KERNEL,
-                &layer_prelude(config, Some(l)),
-                if narrow(ly) {
+                &layer_prelude(config, Some(l), straight),
+                if rows_kernel(ly, straight) {
                     "backward_weights_rows"
                 } else {
                     "backward_weights"
@@ -1073,7 +1113,7 @@ pub async fn record_backward(
     gpu.dispatch_variant(
         encoder,
         &KERNEL,
-        &layer_prelude(config, None),
+        &layer_prelude(config, None, straight),
         "reduce_grads",
         &[(0, &u), (6, buffers.scratch), (7, d_params)],
         config.n_params() as u32,
@@ -1229,17 +1269,27 @@ mod tests {
             c.scratch_words(1000),
             1000 * 131 + 1000usize.div_ceil(CHUNK_ROWS) * c.n_params()
         );
-        // 16 input columns per parameter-gradient block of a wide layer (≥ 32 outputs), 32 of a narrow
-        // one (the first block also sums the bias); a layer with fewer inputs has one block, its width
-        // rounded up to a multiple of 4.
-        let blocks: Vec<usize> = c.layers().iter().map(layer_blocks).collect();
-        assert_eq!(blocks, vec![4, 4, 2]);
-        let widths: Vec<usize> = MlpConfig::nerfacto_density()
-            .layers()
-            .iter()
-            .map(layer_block)
-            .collect();
-        assert_eq!(widths, vec![16, 32]);
+        // With straight-line kernels (lavapipe) 16 input columns per parameter-gradient block of a wide
+        // layer (≥ 32 outputs), 32 of a narrow one; with loops 32 everywhere (the first block also sums
+        // the bias); a layer with fewer inputs has one block, its width rounded up to a multiple of 4.
+        let blocks = |straight| -> Vec<usize> {
+            c.layers()
+                .iter()
+                .map(|l| layer_blocks(l, straight))
+                .collect()
+        };
+        assert_eq!(
+            (blocks(true), blocks(false)),
+            (vec![4, 4, 2], vec![2, 2, 2])
+        );
+        let widths = |straight| -> Vec<usize> {
+            MlpConfig::nerfacto_density()
+                .layers()
+                .iter()
+                .map(|l| layer_block(l, straight))
+                .collect()
+        };
+        assert_eq!((widths(true), widths(false)), (vec![16, 32], vec![32, 32]));
         let narrow = LayerInfo {
             fan_in: 10,
             fan_out: 16,
@@ -1248,7 +1298,15 @@ mod tests {
             saved: 0,
             delta: 0,
         };
-        assert_eq!((layer_block(&narrow), layer_blocks(&narrow)), (12, 1));
+        for straight in [true, false] {
+            assert_eq!(
+                (
+                    layer_block(&narrow, straight),
+                    layer_blocks(&narrow, straight)
+                ),
+                (12, 1)
+            );
+        }
     }
 
     #[test]
