@@ -851,8 +851,8 @@ fn layer_prelude(cfg: &MlpConfig, l: Option<usize>, straight: bool) -> String {
 /// is the same on every lane as one scalar load and a broadcast only outside all control flow; inside any
 /// loop it loads lane by lane. With a loop over the outputs the forward of a 64 × 64 layer took 50 ms for
 /// 49 k rows, straight-line 14-20 ms (2026-12-03). Other adapters get the same products as loops
-/// (`straight` false): SwiftShader (Chromium's software WebGPU) trained 2x slower on the straight-line code,
-/// and GPUs unroll such loops themselves.
+/// (`straight` false): GPUs unroll such loops themselves. (Chromium's SwiftShader trains 2x slower since
+/// 2c96cf6 in either form: the products' move into these array-returning functions is the suspect.)
 fn layer_products(
     fan_in: usize,
     fan_out: usize,

@@ -243,8 +243,8 @@ impl Gpu {
 
     /// Whether kernels should run their inner products as straight-line code (the MLP's, generated per
     /// layer shape): on lavapipe, which broadcasts a lane-uniform workgroup load only outside control flow
-    /// (measured 1.4-2x faster per MLP pass there). Elsewhere loops: SwiftShader trained 2x slower on the
-    /// straight-line code, and hardware GPUs unroll the loops themselves.
+    /// (measured 1.4-2x faster per MLP pass there). Elsewhere loops: hardware GPUs unroll them themselves,
+    /// and the straight-line code is untested on them.
     pub fn straight_line_kernels(&self) -> bool {
         self.straight
     }
