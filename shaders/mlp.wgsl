@@ -260,6 +260,21 @@ fn input4(r: u32, k: u32) -> vec4<f32> {
     return v;
 }
 
+// Lane j's partial gradients of one chunk: weights j, kb .. kb + WB (those that exist), and the bias from
+// the first block.
+fn store_partials(chunk: u32, kb: u32, j: u32, w: array<vec4<f32>, WB4>, bias: f32) {
+    let out = mlp.partial_offset + chunk * mlp.n_params;
+    for (var c = 0u; c < WB; c++) {
+        let k = kb + c;
+        if (k < L_IN) {
+            scratch[out + L_W + j * L_IN + k] = w[c / 4u][c & 3u];
+        }
+    }
+    if (kb == 0u) {
+        scratch[out + L_B + j] = bias;
+    }
+}
+
 // The chunk's rows staged at once (TILE_ROWS = CHUNK), the sums over them the prelude's straight-line
 // weight_sums (one lane-uniform tile load per four columns and row, outside all control flow: see
 // layer_products in field/mlp.rs); rows past the batch are zeros in the tile and in the deltas.
@@ -293,16 +308,11 @@ fn backward_weights(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroup
     if (!live_group || j >= L_OUT) {
         return;
     }
-    let out = mlp.partial_offset + chunk * mlp.n_params;
-    for (var c = 0u; c < WB; c++) {
-        let k = kb + c;
-        if (k < L_IN) {
-            scratch[out + L_W + j * L_IN + k] = sums[c / 4u][c & 3u];
-        }
+    var w: array<vec4<f32>, WB4>;
+    for (var q = 0u; q < WB4; q++) {
+        w[q] = sums[q];
     }
-    if (kb == 0u) {
-        scratch[out + L_B + j] = sums[WB4].x;
-    }
+    store_partials(chunk, kb, j, w, sums[WB4].x);
 }
 
 // backward_weights for a narrow layer (fewer than 32 outputs, as the engine picks): the same sums in loops
@@ -345,16 +355,7 @@ fn backward_weights_rows(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_work
     if (!lane_live) {
         return;
     }
-    let out = mlp.partial_offset + chunk * mlp.n_params;
-    for (var c = 0u; c < WB; c++) {
-        let k = kb + c;
-        if (k < L_IN) {
-            scratch[out + L_W + j * L_IN + k] = acc[c / 4u][c & 3u];
-        }
-    }
-    if (kb == 0u) {
-        scratch[out + L_B + j] = bias;
-    }
+    store_partials(chunk, kb, j, acc, bias);
 }
 
 @compute @workgroup_size(64)
