@@ -36,9 +36,8 @@
 
 const WG: u32 = 64u;
 // Rows of the input tile backward_weights stages: its whole chunk (CHUNK, from the prelude); and per step
-// of backward_weights_rows.
+// of backward_weights_rows (ROWS_TILE, from the prelude).
 const TILE_ROWS: u32 = CHUNK;
-const ROWS_TILE: u32 = 64u;
 
 const FLAG_D_INPUT: u32 = 1u;
 const FLAG_ACCUMULATE: u32 = 2u;
@@ -65,11 +64,14 @@ struct Mlp {
 @group(0) @binding(7) var<storage, read_write> d_params: array<f32>;
 @group(0) @binding(8) var<storage, read_write> d_input: array<f32>;
 
-// One layer's weights (64 x 64 f32 = 16 KiB, the portable limit): forward_layer and backward_layer.
-var<workgroup> ws: array<vec4<f32>, 1024>;
-// Layer inputs staged by backward_weights (TILE_ROWS x WB) and backward_weights_rows (ROWS_TILE x WB):
-// 16 KiB, the portable limit.
-var<workgroup> tile: array<vec4<f32>, 1024>;
+// One layer's weights, staged by forward_layer and backward_layer (at most 64 x 64 f32 = 16 KiB, the
+// portable limit), sized to the layer: WebGPU zero-fills workgroup memory in every workgroup.
+var<workgroup> ws: array<vec4<f32>, max(max(L_OUT * K4, L_IN * M4), 1u)>;
+// Layer inputs staged by backward_weights (TILE_ROWS x WB, 16 KiB, the portable limit) or
+// backward_weights_rows (ROWS_TILE x WB): the prelude's STAGED_ROWS is the layer's kernel's. Sized to it
+// because WebGPU zero-fills workgroup memory at the start of every workgroup (16 KiB for a 4-column tile
+// cost Chromium's SwiftShader ~15 % of a training step).
+var<workgroup> tile: array<vec4<f32>, STAGED_ROWS * WB4>;
 
 fn group_index(wg: vec3<u32>, nwg: vec3<u32>) -> u32 {
     return wg.y * nwg.x + wg.x;
@@ -145,6 +147,15 @@ fn layer_row(r: u32) -> array<vec4<f32>, K4> {
     return a;
 }
 
+// The loop form's row loader: one word at a time.
+fn layer_row_loop(r: u32) -> array<vec4<f32>, K4> {
+    var a: array<vec4<f32>, K4>;
+    for (var k = 0u; k < L_IN; k++) {
+        a[k / 4u][k & 3u] = in_at(r, k);
+    }
+    return a;
+}
+
 // Row r's pre-activation gradient of output j (zero past fan_out): from dL/doutput for the last layer
 // (times y (1 - y) under the sigmoid), else from scratch.
 fn delta_at(r: u32, j: u32) -> f32 {
@@ -162,34 +173,65 @@ fn delta_at(r: u32, j: u32) -> f32 {
     return scratch[r * DELTA_STRIDE + L_DELTA + j];
 }
 
-// Both per-row kernels run their matrix product outside all control flow (see layer_products in
-// field/mlp.rs): no early return; a lane past the batch (or in a whole workgroup past it, the tail of a
-// folded dispatch) works on the last row and stores nothing. The engine never dispatches them for n = 0.
+// Both per-row kernels come in two forms, picked by the prelude's STRAIGHT (Gpu::straight_line_kernels):
+// - straight (lavapipe): the matrix product outside all control flow, the prelude's generated layer_dense /
+//   layer_dense_t (see layer_products in field/mlp.rs); no early return, a lane past the batch (or in a whole
+//   workgroup past it, the tail of a folded dispatch) works on the last row and stores nothing. The engine
+//   never dispatches them for n = 0.
+// - loops (every other adapter): lanes past the batch leave early, the product runs one output at a time and
+//   is stored as it goes. GPUs unroll these loops themselves; Chromium's SwiftShader ran the straight form's
+//   shape (array-returning products, no early return) at half speed even with loops inside.
 @compute @workgroup_size(64)
 fn forward_layer(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                  @builtin(local_invocation_index) li: u32) {
     let n = mlp.n;
     let first = group_index(wg, nwg) * WG;
-    stage_weights(li);
-    workgroupBarrier();
-    let live = first + li < n;
-    let r = min(first + li, n - 1u);
-    let z = layer_dense(layer_row(r));
-    if (!live) {
+    if (!STRAIGHT && first >= n) {
+        // Whole workgroups past the batch leave before the barrier.
         return;
     }
-    for (var j = 0u; j < L_OUT; j++) {
-        var y = params[L_B + j] + z[j];
-        if (!L_LAST) {
-            y = max(y, 0.0);
-            saved[r * SAVED_STRIDE + L_SAVED + j] = y;
-        } else {
-            if (L_SIGMOID) {
-                y = sigmoid1(y);
-                saved[r * SAVED_STRIDE + L_SAVED + j] = y;
-            }
-            output[r * L_OUT + j] = y;
+    stage_weights(li);
+    workgroupBarrier();
+    if (STRAIGHT) {
+        let live = first + li < n;
+        let r = min(first + li, n - 1u);
+        let z = layer_dense(layer_row(r));
+        if (!live) {
+            return;
         }
+        for (var j = 0u; j < L_OUT; j++) {
+            store_output(r, j, params[L_B + j] + z[j]);
+        }
+    } else {
+        let r = first + li;
+        if (r >= n) {
+            return;
+        }
+        let a = layer_row_loop(r);
+        // One output at a time: a private row of inputs against one broadcast weight row.
+        for (var j = 0u; j < L_OUT; j++) {
+            var acc = vec4<f32>(0.0);
+            for (var q = 0u; q < K4; q++) {
+                acc += a[q] * ws[j * K4 + q];
+            }
+            store_output(r, j, params[L_B + j] + (acc.x + acc.y) + (acc.z + acc.w));
+        }
+    }
+}
+
+// Output j of row r, pre-activation z: through the ReLU into saved (hidden layers), or through the output
+// activation into output (and saved under a sigmoid, for its derivative).
+fn store_output(r: u32, j: u32, z: f32) {
+    var y = z;
+    if (!L_LAST) {
+        y = max(y, 0.0);
+        saved[r * SAVED_STRIDE + L_SAVED + j] = y;
+    } else {
+        if (L_SIGMOID) {
+            y = sigmoid1(y);
+            saved[r * SAVED_STRIDE + L_SAVED + j] = y;
+        }
+        output[r * L_OUT + j] = y;
     }
 }
 
@@ -198,46 +240,76 @@ fn backward_layer(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
                   @builtin(local_invocation_index) li: u32) {
     let n = mlp.n;
     let first = group_index(wg, nwg) * WG;
-    // Layer 0's transposed product is dL/dinput: not stored when not asked for.
+    if (!STRAIGHT && first >= n) {
+        return;
+    }
+    // Layer 0's transposed product is dL/dinput: not computed (loops) or not stored (straight) when not
+    // asked for.
     let product = !L_FIRST || (mlp.flags & FLAG_D_INPUT) != 0u;
     if (product) {
         stage_weights_transposed(li);
     }
     workgroupBarrier();
-    let live = first + li < n;
-    let r = min(first + li, n - 1u);
-    var g: array<vec4<f32>, M4>;
-    for (var q = 0u; q < M4; q++) {
-        let j = 4u * q;
-        g[q] = vec4<f32>(delta_at(r, j), delta_at(r, j + 1u), delta_at(r, j + 2u), delta_at(r, j + 3u));
-    }
-    let d = layer_dense_t(g);
-    if (!live) {
-        return;
-    }
-    if (L_LAST) {
-        // The output layer's deltas, kept for backward_weights.
+    if (STRAIGHT) {
+        let live = first + li < n;
+        let r = min(first + li, n - 1u);
+        var g: array<vec4<f32>, M4>;
         for (var q = 0u; q < M4; q++) {
-            for (var c = 0u; c < 4u; c++) {
-                if (4u * q + c < L_OUT) {
-                    scratch[r * DELTA_STRIDE + L_DELTA + 4u * q + c] = g[q][c];
-                }
+            let j = 4u * q;
+            g[q] = vec4<f32>(delta_at(r, j), delta_at(r, j + 1u), delta_at(r, j + 2u), delta_at(r, j + 3u));
+        }
+        let d = layer_dense_t(g);
+        if (!live) {
+            return;
+        }
+        if (L_LAST) {
+            // The output layer's deltas, kept for backward_weights.
+            for (var j = 0u; j < L_OUT; j++) {
+                scratch[r * DELTA_STRIDE + L_DELTA + j] = g[j / 4u][j & 3u];
             }
         }
-    }
-    if (!product) {
-        return;
-    }
-    for (var k = 0u; k < L_IN; k++) {
-        var v = d[k];
-        if (!L_FIRST) {
-            // ReLU': the unit was active iff its saved output is positive. select, not a product, so a
-            // dead unit's gradient is exactly 0 even if the sum overflowed.
-            v = select(0.0, v, saved[r * SAVED_STRIDE + L_BELOW_SAVED + k] > 0.0);
-            scratch[r * DELTA_STRIDE + L_BELOW_DELTA + k] = v;
-        } else {
-            d_input[r * L_IN + k] = v;
+        if (!product) {
+            return;
         }
+        for (var k = 0u; k < L_IN; k++) {
+            store_input_delta(r, k, d[k]);
+        }
+    } else {
+        let r = first + li;
+        if (r >= n) {
+            return;
+        }
+        var g: array<vec4<f32>, M4>;
+        for (var j = 0u; j < L_OUT; j++) {
+            let v = delta_at(r, j);
+            g[j / 4u][j & 3u] = v;
+            if (L_LAST) {
+                // The output layer's deltas, kept for backward_weights.
+                scratch[r * DELTA_STRIDE + L_DELTA + j] = v;
+            }
+        }
+        if (!product) {
+            return;
+        }
+        for (var k = 0u; k < L_IN; k++) {
+            var acc = vec4<f32>(0.0);
+            for (var q = 0u; q < M4; q++) {
+                acc += g[q] * ws[k * M4 + q];
+            }
+            store_input_delta(r, k, (acc.x + acc.y) + (acc.z + acc.w));
+        }
+    }
+}
+
+// Row r's gradient of input k, v: masked by the ReLU below into its scratch slot, or dL/dinput for layer 0.
+fn store_input_delta(r: u32, k: u32, v: f32) {
+    if (!L_FIRST) {
+        // ReLU': the unit was active iff its saved output is positive. select, not a product, so a dead
+        // unit's gradient is exactly 0 even if the sum overflowed.
+        scratch[r * DELTA_STRIDE + L_BELOW_DELTA + k] =
+            select(0.0, v, saved[r * SAVED_STRIDE + L_BELOW_SAVED + k] > 0.0);
+    } else {
+        d_input[r * L_IN + k] = v;
     }
 }
 

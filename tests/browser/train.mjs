@@ -24,17 +24,10 @@ const RUN_TIMEOUT_MS = 600_000;
 /** The run of tests/tests/submap.rs (native reference), as the studio's link presets it. */
 const qualityRun = (steps) =>
   `steps=${steps}&rays=256&model=tiny&downscale=2&export=4096&uncertainty=2&view-every=50&views=8&mode=silvr`;
-const BROWSER_RUN = qualityRun(150);
-/** Steps of the quality run per browser: 150 where training is fast (Firefox on lavapipe, natively ~5x
- * Chromium's SwiftShader); in CI Chromium runs the same test on a 100-step run against the native 100-step
- * run (micro-native-100.json), to keep CI within its time. `SILVR_BROWSER_PATHS=all` runs 150 there too. */
-const qualitySteps = (driver) => (driver.quick ? 100 : 150);
+/** The quality run, the same in both browsers (tests/tests/submap.rs runs it natively: micro-native.json). */
+const QUALITY_STEPS = 150;
+const BROWSER_RUN = qualityRun(QUALITY_STEPS);
 /** Runs that test a path (faults, resuming), not quality: short, and nothing after training but the checkpoint. */
-// The paths (resume after a reload, a native checkpoint, a camera-only capture, device loss, worker crash)
-// are the same worker code in both browsers; in CI they run where training is fast (Firefox on lavapipe,
-// `driver.paths`), to keep CI within its time. `SILVR_BROWSER_PATHS=all` runs them in Chromium too (they pass
-// there: BENCHMARKS.md / the issue notes).
-const PATHS_SKIP = 'path test: runs in Firefox (SILVR_BROWSER_PATHS=all runs it here too)';
 const PATH_RUN = 'rays=256&model=tiny&downscale=2&export=0&uncertainty=0&view-every=0&views=0&mode=silvr';
 /** Held-out PSNR of the browser run within this of the native WGSL run (dB; the issue's bound). */
 const PSNR_TOLERANCE_DB = 0.5;
@@ -85,8 +78,8 @@ export function trainSuite(driver) {
       driver.waitFor(page, (states) => states.includes(document.querySelector('#train-status').dataset.state), states, timeout);
 
     test('a packed submap trains in the worker as natively: loss falls, pause/resume, held-out view, points and uncertainty, no long tasks', async () => {
-      const steps = qualitySteps(driver);
-      const native = JSON.parse(readFileSync(join(FIXTURES, steps === 150 ? 'micro-native.json' : `micro-native-${steps}.json`), 'utf8'));
+      const steps = QUALITY_STEPS;
+      const native = JSON.parse(readFileSync(join(FIXTURES, 'micro-native.json'), 'utf8'));
       assert.equal(native.steps, steps);
       const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&${qualityRun(steps)}`);
       await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.step || 0) >= 1, null, RUN_TIMEOUT_MS);
@@ -189,7 +182,7 @@ export function trainSuite(driver) {
       await page.close();
     });
 
-    test('a reload mid-training resumes from the checkpoint in browser storage; a native checkpoint continues in the browser', { skip: !driver.paths && PATHS_SKIP }, async () => {
+    test('a reload mid-training resumes from the checkpoint in browser storage; a native checkpoint continues in the browser', async () => {
       const native = JSON.parse(readFileSync(join(FIXTURES, 'micro-native.json'), 'utf8'));
       const query = `train=${encodeURIComponent('/data/micro.tar')}&steps=80&${PATH_RUN}&checkpoint-every=20`;
       const { page, log } = await open(query);
@@ -235,7 +228,7 @@ export function trainSuite(driver) {
       await p2.close();
     });
 
-    test('a lost GPU device mid-training: a message, a new device, the run goes on from its checkpoint', { skip: !driver.paths && PATHS_SKIP }, async () => {
+    test('a lost GPU device mid-training: a message, a new device, the run goes on from its checkpoint', async () => {
       const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&steps=40&${PATH_RUN}&checkpoint-every=10`);
       await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.savedStep || 0) >= 10, null, RUN_TIMEOUT_MS);
       const saved = Number((await status(page)).savedStep);
@@ -255,7 +248,7 @@ export function trainSuite(driver) {
       await page.close();
     });
 
-    test('a worker crash mid-training: reported, a new worker started, the saved run resumed', { skip: !driver.paths && PATHS_SKIP }, async () => {
+    test('a worker crash mid-training: reported, a new worker started, the saved run resumed', async () => {
       const { page, log } = await open(`train=${encodeURIComponent('/data/micro.tar')}&steps=40&${PATH_RUN}&checkpoint-every=10`);
       await driver.waitFor(page, () => Number(document.querySelector('#train-status').dataset.savedStep || 0) >= 10, null, RUN_TIMEOUT_MS);
       await driver.evaluate(page, () => document.dispatchEvent(new CustomEvent('silvr-debug-panic')));
@@ -279,7 +272,7 @@ export function trainSuite(driver) {
       await page.close();
     });
 
-    test('a nerfstudio capture (camera only) trains vision-only in the worker', { skip: (!driver.paths && PATHS_SKIP) || (!existsSync(join(FIXTURES, 'fox.tar')) && 'no fox.tar fixture (../shared/data/real/fox absent)') }, async () => {
+    test('a nerfstudio capture (camera only) trains vision-only in the worker', { skip: (!existsSync(join(FIXTURES, 'fox.tar')) && 'no fox.tar fixture (../shared/data/real/fox absent)') }, async () => {
       const native = JSON.parse(readFileSync(join(FIXTURES, 'fox-native.json'), 'utf8'));
       // Mode silvr asked for: a capture without lidar trains vision-only all the same.
       const run = 'steps=40&rays=256&model=tiny&downscale=8&export=0&uncertainty=0&view-every=0&views=1&mode=silvr';

@@ -12,9 +12,6 @@ const CHROMIUM = process.env.SILVR_CHROMIUM || '/usr/bin/chromium';
 const driver = {
   name: 'Chromium',
   serve: true,
-  paths: process.env.SILVR_BROWSER_PATHS === 'all',
-  // SwiftShader trains ~5x slower than Firefox on lavapipe: the quality run is shorter here in CI.
-  quick: process.env.SILVR_BROWSER_PATHS !== 'all',
   launch: () =>
     chromium.launch({
       executablePath: CHROMIUM,

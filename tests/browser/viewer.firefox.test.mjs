@@ -16,7 +16,6 @@ if (!existsSync(FIREFOX)) {
 const driver = {
   name: 'Firefox',
   serve: false,
-  paths: true,
   launch: () =>
     puppeteer.launch({
       browser: 'firefox',

@@ -56,6 +56,8 @@ const WORKGROUP: u32 = 64;
 /// spilled).
 const BLOCK: usize = 16;
 const BLOCK_NARROW: usize = 32;
+/// Rows per input tile of `backward_weights_rows` (`ROWS_TILE` in mlp.wgsl).
+const ROWS_TILE: usize = 64;
 /// Layers with fewer outputs take `backward_weights_rows`, whose loops run only the live outputs' lanes.
 const NARROW_OUTPUTS: usize = 32;
 
@@ -820,7 +822,8 @@ fn layer_prelude(cfg: &MlpConfig, l: Option<usize>, straight: bool) -> String {
         "const L_IN: u32 = {}u;\nconst L_OUT: u32 = {}u;\nconst L_W: u32 = {}u;\nconst L_B: u32 = {}u;\n\
          const L_SAVED: u32 = {}u;\nconst L_DELTA: u32 = {}u;\nconst L_FIRST: bool = {};\nconst L_LAST: bool = {};\n\
          const L_SIGMOID: bool = {};\nconst L_BELOW_SAVED: u32 = {}u;\nconst L_BELOW_DELTA: u32 = {}u;\n\
-         const SAVED_STRIDE: u32 = {}u;\nconst DELTA_STRIDE: u32 = {}u;\nconst WB: u32 = {}u;\nconst CHUNK: u32 = {}u;\n",
+         const SAVED_STRIDE: u32 = {}u;\nconst DELTA_STRIDE: u32 = {}u;\nconst WB: u32 = {}u;\nconst CHUNK: u32 = {}u;\n\
+         const ROWS_TILE: u32 = {ROWS_TILE}u;\nconst STAGED_ROWS: u32 = {}u;\n",
         ly.fan_in,
         ly.fan_out,
         ly.weights,
@@ -836,6 +839,11 @@ fn layer_prelude(cfg: &MlpConfig, l: Option<usize>, straight: bool) -> String {
         cfg.delta_per_row(),
         layer_block(&ly, straight),
         CHUNK_ROWS,
+        if rows_kernel(&ly, straight) {
+            ROWS_TILE
+        } else {
+            CHUNK_ROWS
+        },
     ) + &layer_products(
         ly.fan_in,
         ly.fan_out,
@@ -851,8 +859,8 @@ fn layer_prelude(cfg: &MlpConfig, l: Option<usize>, straight: bool) -> String {
 /// is the same on every lane as one scalar load and a broadcast only outside all control flow; inside any
 /// loop it loads lane by lane. With a loop over the outputs the forward of a 64 × 64 layer took 50 ms for
 /// 49 k rows, straight-line 14-20 ms (2026-12-03). Other adapters get the same products as loops
-/// (`straight` false): GPUs unroll such loops themselves. (Chromium's SwiftShader trains 2x slower since
-/// 2c96cf6 in either form: the products' move into these array-returning functions is the suspect.)
+/// (`straight` false, `STRAIGHT` in the WGSL): the kernels then run their own loops, GPUs unroll them
+/// themselves, and Chromium's SwiftShader ran the straight form's shape at half speed even with loops inside.
 fn layer_products(
     fan_in: usize,
     fan_out: usize,
@@ -861,20 +869,17 @@ fn layer_products(
     sums: bool,
 ) -> String {
     if !straight {
-        return "fn layer_dense(a: array<vec4<f32>, K4>) -> array<f32, O_N> {\n    var o: array<f32, O_N>;\n    \
-                for (var j = 0u; j < L_OUT; j++) {\n        var acc = vec4<f32>(0.0);\n        \
-                for (var q = 0u; q < K4; q++) { acc += a[q] * ws[j * K4 + q]; }\n        \
-                o[j] = (acc.x + acc.y) + (acc.z + acc.w);\n    }\n    return o;\n}\n\
-                fn layer_dense_t(g: array<vec4<f32>, M4>) -> array<f32, I_N> {\n    var o: array<f32, I_N>;\n    \
-                for (var k = 0u; k < L_IN; k++) {\n        var acc = vec4<f32>(0.0);\n        \
-                for (var q = 0u; q < M4; q++) { acc += g[q] * ws[k * M4 + q]; }\n        \
-                o[k] = (acc.x + acc.y) + (acc.z + acc.w);\n    }\n    return o;\n}\n\
+        // The kernels' loop form runs its own loops (mlp.wgsl, under `!STRAIGHT`); these only compile.
+        return "const STRAIGHT: bool = false;\n\
+                fn layer_dense(a: array<vec4<f32>, K4>) -> array<f32, O_N> {\n    var o: array<f32, O_N>;\n    return o;\n}\n\
+                fn layer_dense_t(g: array<vec4<f32>, M4>) -> array<f32, I_N> {\n    var o: array<f32, I_N>;\n    return o;\n}\n\
                 fn weight_sums(r0: u32, j: u32) -> array<vec4<f32>, WB4 + 1u> {\n    \
                 var o: array<vec4<f32>, WB4 + 1u>;\n    return o;\n}\n"
             .to_string();
     }
     let mut s = String::from(
-        "fn layer_dense(a: array<vec4<f32>, K4>) -> array<f32, O_N> {\n    var o: array<f32, O_N>;\n",
+        "const STRAIGHT: bool = true;\n\
+         fn layer_dense(a: array<vec4<f32>, K4>) -> array<f32, O_N> {\n    var o: array<f32, O_N>;\n",
     );
     for j in 0..fan_out {
         s += &format!(
