@@ -254,8 +254,26 @@ fn summarise(report: &Value) {
         eprintln!(
             "[poses] warning: the match graph falls apart into {n} parts: between them only the SLAM \
              odometry ties the keyframes (their relative poses there are the prior's); see the images \
-             not registered above, or lower --peak-threshold"
+             not registered below, or lower --peak-threshold"
         );
+        let images = p["per_image"].as_array().map(Vec::as_slice).unwrap_or(&[]);
+        for part in 0..n {
+            let names: Vec<&str> = images
+                .iter()
+                .filter(|r| r["part"].as_u64() == Some(part))
+                .filter_map(|r| r["name"].as_str())
+                .collect();
+            let span = match names.as_slice() {
+                [] => String::new(),
+                [one] => one.to_string(),
+                [first, .., last] => format!("{first} … {last}"),
+            };
+            eprintln!(
+                "[poses]   part {}: {} images, {span}",
+                part + 1,
+                names.len()
+            );
+        }
     }
     if let Some(stages) = p["stages"].as_array() {
         let s: Vec<String> = stages

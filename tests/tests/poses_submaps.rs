@@ -648,7 +648,9 @@ fn poses_refines_the_prior_and_names_a_textureless_image() {
         track_cut[1]
     );
 
-    // One image replaced by flat grey: named, with the reason; the rest still register.
+    // One image replaced by flat grey: named, with the reason; the rest still register. And all three
+    // images of keyframe 6: nothing ties that keyframe to the others by features, so the match graph falls
+    // apart into two parts, said and named (the run still refines what it can).
     let grey = tmp.path().join("grey.png");
     image::RgbImage::from_pixel(180, 135, image::Rgb([128, 128, 128]))
         .save(&grey)
@@ -675,6 +677,11 @@ fn poses_refines_the_prior_and_names_a_textureless_image() {
             victim = fr["file_path"].as_str().unwrap().to_string();
             fr["file_path"] = grey.to_str().unwrap().into();
         }
+        if fr["keyframe"] == 6 {
+            let alone = tmp.path().join(format!("alone-{i}.png"));
+            std::fs::copy(&grey, &alone).unwrap();
+            fr["file_path"] = alone.to_str().unwrap().into();
+        }
     }
     let pj = tmp.path().join("prior.json");
     std::fs::write(&pj, serde_json::to_vec(&prior).unwrap()).unwrap();
@@ -689,7 +696,22 @@ fn poses_refines_the_prior_and_names_a_textureless_image() {
         said.contains("not registered") && said.contains("grey.png") && said.contains("features"),
         "{said}"
     );
-    assert!(said.contains("registered 35/36"), "{said}");
+    assert!(said.contains("registered 32/36"), "{said}");
+    assert!(said.contains("falls apart into 2 parts"), "{said}");
+    let part2 = said
+        .lines()
+        .find(|l| l.contains("part 2:"))
+        .unwrap_or_else(|| panic!("no part 2 named: {said}"));
+    assert!(
+        part2.contains("3 images") && part2.contains("alone-18.png") && part2.contains("alone-20.png"),
+        "{part2}"
+    );
+    let r2 = json(&out2.join("report.json"));
+    assert_eq!(r2["poses"]["components"], 2, "{r2}");
+    for im in r2["poses"]["per_image"].as_array().unwrap() {
+        let alone = im["name"].as_str().unwrap().contains("alone-");
+        assert_eq!(im["part"], if alone { 1 } else { 0 }, "{im}");
+    }
     assert!(!victim.is_empty());
     // Refused: the folder exists.
     let again = silvr(&[

@@ -196,10 +196,12 @@ pub enum BaError {
     Invalid(String),
     #[error("camera {index}: {source}")]
     Camera { index: usize, source: CameraError },
-    #[error("diverged: {0}")]
-    Diverged(String),
+    /// `poses`: the keyframes whose terms went non-finite, for the caller to name their images.
+    #[error("diverged: {detail}")]
+    Diverged { detail: String, poses: Vec<usize> },
+    /// `poses`: the least observed keyframes (the likeliest to be unconstrained), fewest first.
     #[error("the reduced camera system is not positive definite even with damping λ = {lambda:e}")]
-    Singular { lambda: f64 },
+    Singular { lambda: f64, poses: Vec<usize> },
 }
 
 // ---------------------------------------------------------------------------------------------------------
@@ -927,6 +929,46 @@ impl Eval {
     }
 }
 
+/// The keyframes with a non-finite term in `ev`: an observation's reprojection or a prior on them.
+fn non_finite_poses(ctx: &Ctx, st: &State, ev: &Eval) -> Vec<usize> {
+    let k = ctx.o.prior_huber;
+    let bad = |v: f64| !robust(Loss::Huber, k, v).0.is_finite();
+    let mut poses: Vec<usize> = ctx
+        .p
+        .observations
+        .iter()
+        .zip(&ev.terms)
+        .filter(|(_, t)| t.is_some_and(|t| !t.is_finite()))
+        .map(|(ob, _)| ob.pose)
+        .collect();
+    for r in &ctx.p.relative_priors {
+        let (res, _, _) = relative_prior_lin(r, &st.poses[r.a], &st.poses[r.b]);
+        if bad(res.norm_squared()) {
+            poses.extend([r.a, r.b]);
+        }
+    }
+    for a in &ctx.p.absolute_priors {
+        if bad(absolute_prior_lin(a, &st.poses[a.pose]).0.norm_squared()) {
+            poses.push(a.pose);
+        }
+    }
+    poses.sort_unstable();
+    poses.dedup();
+    poses
+}
+
+/// Up to `most` keyframes with the fewest observations, fewest first.
+fn least_observed_poses(problem: &BaProblem, most: usize) -> Vec<usize> {
+    let mut count = vec![0usize; problem.poses.len()];
+    for ob in &problem.observations {
+        count[ob.pose] += 1;
+    }
+    let mut order: Vec<usize> = (0..count.len()).collect();
+    order.sort_by_key(|&k| (count[k], k));
+    order.truncate(most);
+    order
+}
+
 fn prior_costs(ctx: &Ctx, st: &State) -> f64 {
     let k = ctx.o.prior_huber;
     let rel: f64 = ctx
@@ -1364,10 +1406,10 @@ pub fn solve(problem: &mut BaProblem, opts: &BaOptions) -> Result<BaReport, BaEr
     };
     let mut ev = evaluate(&ctx, &st);
     if !ev.cost.is_finite() {
-        return Err(BaError::Diverged(format!(
-            "the initial cost is not finite ({})",
-            ev.cost
-        )));
+        return Err(BaError::Diverged {
+            detail: format!("the initial cost is not finite ({})", ev.cost),
+            poses: non_finite_poses(&ctx, &st, &ev),
+        });
     }
     let (initial_cost, initial_rmse_px) = (ev.cost, ev.rmse());
 
@@ -1392,7 +1434,10 @@ pub fn solve(problem: &mut BaProblem, opts: &BaOptions) -> Result<BaReport, BaEr
                 lambda *= nu;
                 nu *= 2.0;
                 if lambda > MAX_LAMBDA {
-                    return Err(BaError::Singular { lambda });
+                    return Err(BaError::Singular {
+                        lambda,
+                        poses: least_observed_poses(problem, 5),
+                    });
                 }
                 continue;
             };
@@ -2275,6 +2320,19 @@ mod tests {
             ..Default::default()
         };
         assert!(err(&good, &bad_loss).contains("huber_px"));
+
+        // Finite input whose cost overflows: diverged, naming the keyframe whose terms did.
+        let mut p = good.clone();
+        let victim = p.observations.iter().position(|o| o.pose == 2).unwrap();
+        p.observations[victim].uv = DVec2::new(1e300, 1e300);
+        let mut q = p.clone();
+        match solve(&mut q, &opts) {
+            Err(BaError::Diverged { poses, detail }) => {
+                assert_eq!(poses, vec![2], "{detail}");
+                assert!(detail.contains("not finite"), "{detail}");
+            }
+            other => panic!("expected a divergence naming pose 2, got {other:?}"),
+        }
 
         // The error query never panics either.
         let mut p = good.clone();

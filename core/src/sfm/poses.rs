@@ -107,10 +107,53 @@ pub enum PosesError {
     Rig(String),
     #[error("nothing to adjust: {0}")]
     Empty(String),
-    #[error("bundle adjustment: {0}")]
-    Ba(#[from] ba::BaError),
+    /// `images`: the images of the keyframes the failure points at (empty when it names none).
+    #[error("bundle adjustment, round {round}: {source}{}", name_images(images))]
+    Ba {
+        round: usize,
+        images: Vec<String>,
+        source: ba::BaError,
+    },
     #[error("Sim(3) alignment to the prior: {0}")]
     Align(String),
+}
+
+fn name_images(images: &[String]) -> String {
+    const SHOWN: usize = 6;
+    if images.is_empty() {
+        return String::new();
+    }
+    let mut s = format!(
+        "; the images concerned: {}",
+        images[..images.len().min(SHOWN)].join(", ")
+    );
+    if images.len() > SHOWN {
+        s += &format!(" and {} more", images.len() - SHOWN);
+    }
+    s
+}
+
+/// The images of the keyframes a BA failure names (`frames` in input order, `keyframe_of` per frame).
+fn ba_failure(
+    round: usize,
+    source: ba::BaError,
+    frames: &[PoseFrame],
+    keyframe_of: &[usize],
+) -> PosesError {
+    let poses: &[usize] = match &source {
+        ba::BaError::Diverged { poses, .. } | ba::BaError::Singular { poses, .. } => poses,
+        _ => &[],
+    };
+    let images = poses
+        .iter()
+        .flat_map(|&k| (0..frames.len()).filter(move |&i| keyframe_of[i] == k))
+        .map(|i| frames[i].name.clone())
+        .collect();
+    PosesError::Ba {
+        round: round + 1,
+        images,
+        source,
+    }
 }
 
 /// One stage's wall time.
@@ -127,6 +170,8 @@ pub struct ImageReport {
     pub features: usize,
     pub observations: usize,
     pub registered: bool,
+    /// Its keyframe's part of the match graph (0 .. components, numbered in keyframe order).
+    pub part: usize,
     /// Why not, when not.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
@@ -432,7 +477,8 @@ pub fn refine_poses(
     // 3. Tracks.
     let counts: Vec<usize> = features.iter().map(Features::len).collect();
     let (tracks, track_stats) = tracks::build_tracks(&counts, &matches);
-    let components = components(rig.keyframes, &matches, &rig.keyframe_of);
+    let part_of_keyframe = components(rig.keyframes, &matches, &rig.keyframe_of);
+    let components = part_of_keyframe.iter().max().map_or(0, |&p| p + 1);
     lap(&mut stages, "tracks");
 
     // 4. Triangulate ↔ adjust rounds.
@@ -545,7 +591,8 @@ pub fn refine_poses(
             refine_extrinsics: opts.refine_extrinsics,
             ..BaOptions::default()
         };
-        let rep = ba::solve(&mut problem, &bopts)?;
+        let rep = ba::solve(&mut problem, &bopts)
+            .map_err(|e| ba_failure(round, e, frames, &rig.keyframe_of))?;
         rounds.push(rep);
         progress("adjust", round + 1, nrounds);
     }
@@ -600,6 +647,7 @@ pub fn refine_poses(
                 features: features[i].len(),
                 observations: obs_per_image[i],
                 registered,
+                part: part_of_keyframe[rig.keyframe_of[i]],
                 reason: (!registered).then(|| {
                     if features[i].len() < opts.min_observations {
                         format!(
@@ -671,8 +719,9 @@ fn odometry(base: &[Se3], opts: &PosesOptions) -> Vec<RelativePrior> {
         .collect()
 }
 
-/// Connected components of the keyframe graph whose edges are matched pairs.
-fn components(keyframes: usize, matches: &[PairMatches], keyframe_of: &[usize]) -> usize {
+/// Connected components of the keyframe graph whose edges are matched pairs: each keyframe's part,
+/// numbered 0.. in the order of their first keyframe.
+fn components(keyframes: usize, matches: &[PairMatches], keyframe_of: &[usize]) -> Vec<usize> {
     let mut parent: Vec<usize> = (0..keyframes).collect();
     fn find(p: &mut [usize], mut x: usize) -> usize {
         while p[x] != x {
@@ -690,9 +739,14 @@ fn components(keyframes: usize, matches: &[PairMatches], keyframe_of: &[usize]) 
             parent[a] = b;
         }
     }
+    let mut label: BTreeMap<usize, usize> = BTreeMap::new();
     (0..keyframes)
-        .filter(|&k| find(&mut parent, k) == k)
-        .count()
+        .map(|k| {
+            let root = find(&mut parent, k);
+            let next = label.len();
+            *label.entry(root).or_insert(next)
+        })
+        .collect()
 }
 
 /// The Sim(3) from the refined keyframe poses to the prior's: the robust fit `silvr eval-poses` uses
@@ -728,6 +782,44 @@ mod tests {
             keyframe: key,
             camera: cam.map(String::from),
         }
+    }
+
+    /// A BA failure names the images of the keyframes it points at (a few, then a count), and the round.
+    #[test]
+    fn ba_failures_name_their_images() {
+        let m = CameraModel::pinhole(64, 48, 50.0, 50.0, 31.5, 23.5);
+        let frames: Vec<PoseFrame> = (0..12)
+            .map(|i| {
+                frame(
+                    &format!("cam{}/{:05}.png", i % 3, i / 3),
+                    Some(i / 3),
+                    None,
+                    m,
+                    i as f64,
+                )
+            })
+            .collect();
+        let keyframe_of: Vec<usize> = (0..12).map(|i| i / 3).collect();
+        let diverged = ba::BaError::Diverged {
+            detail: "the initial cost is not finite (inf)".into(),
+            poses: vec![2],
+        };
+        let e = ba_failure(0, diverged, &frames, &keyframe_of).to_string();
+        assert!(
+            e.starts_with("bundle adjustment, round 1: diverged")
+                && e.contains("cam0/00002.png, cam1/00002.png, cam2/00002.png")
+                && !e.contains("00001"),
+            "{e}"
+        );
+        let singular = ba::BaError::Singular {
+            lambda: 1e16,
+            poses: vec![0, 1, 3],
+        };
+        let e = ba_failure(2, singular, &frames, &keyframe_of).to_string();
+        assert!(e.contains("round 3") && e.contains("and 3 more"), "{e}");
+        let other = ba::BaError::Invalid("x".into());
+        let e = ba_failure(0, other, &frames, &keyframe_of).to_string();
+        assert!(!e.contains("images concerned"), "{e}");
     }
 
     /// The rig read from the prior: one pose per keyframe (in keyframe order, not file order), each
