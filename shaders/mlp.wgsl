@@ -31,6 +31,10 @@
 //                    per output j: sum over the chunk's rows of delta_j * a_k, the first block also of
 //                    delta_j (the bias), 64-row tiles of inputs staged in workgroup memory; one partial
 //                    per chunk. Skipped, with reduce_grads, when only dL/dinput is wanted.
+//   forward_fused    inference (nothing saved): every layer in one dispatch, one thread per row, all the
+//                    layers' weights and biases staged at once (the engine picks it on lavapipe when they
+//                    fit in 16 KiB: the proposal and density heads), the prelude's straight-line
+//                    fused_forward; the hidden rows never leave the lane. Input from `input`, out to `output`.
 //   reduce_grads     one thread per parameter: the chunk partials summed in chunk order (deterministic),
 //                    written over d_params, or added to it when accumulating. No float atomics anywhere.
 
@@ -65,8 +69,9 @@ struct Mlp {
 @group(0) @binding(8) var<storage, read_write> d_input: array<f32>;
 
 // One layer's weights, staged by forward_layer and backward_layer (at most 64 x 64 f32 = 16 KiB, the
-// portable limit), sized to the layer: WebGPU zero-fills workgroup memory in every workgroup.
-var<workgroup> ws: array<vec4<f32>, max(max(L_OUT * K4, L_IN * M4), 1u)>;
+// portable limit), or every layer's weights and biases for forward_fused; sized by the prelude (WS_LEN) to
+// what the pipeline stages, because WebGPU zero-fills workgroup memory in every workgroup.
+var<workgroup> ws: array<vec4<f32>, WS_LEN>;
 // Layer inputs staged by backward_weights (TILE_ROWS x WB, 16 KiB, the portable limit) or
 // backward_weights_rows (ROWS_TILE x WB): the prelude's STAGED_ROWS is the layer's kernel's. Sized to it
 // because WebGPU zero-fills workgroup memory at the start of every workgroup (16 KiB for a 4-column tile
@@ -299,6 +304,35 @@ fn backward_layer(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
             store_input_delta(r, k, (acc.x + acc.y) + (acc.z + acc.w));
         }
     }
+}
+
+// Inference through every layer at once (see the header; the prelude is layer 0's plus the fused
+// stage_fused / fused_forward and F_OUT, the network's output width). Same shape as the straight
+// forward_layer: no early return before the products.
+@compute @workgroup_size(64)
+fn forward_fused(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                 @builtin(local_invocation_index) li: u32) {
+    let n = mlp.n;
+    let first = group_index(wg, nwg) * WG;
+    stage_fused(li);
+    workgroupBarrier();
+    let live = first + li < n;
+    let r = min(first + li, n - 1u);
+    let y = fused_forward(layer_row(r));
+    if (!live) {
+        return;
+    }
+    for (var j = 0u; j < F_OUT; j++) {
+        output[r * F_OUT + j] = y[j];
+    }
+}
+
+// Parameter word `at` (a weight or bias of some layer), or 0 where `ok` is false (padding).
+fn param_or_zero(at: u32, ok: bool) -> f32 {
+    if (ok) {
+        return params[at];
+    }
+    return 0.0;
 }
 
 // Row r's gradient of input k, v: masked by the ReLU below into its scratch slot, or dL/dinput for layer 0.

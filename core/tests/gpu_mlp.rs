@@ -732,6 +732,39 @@ fn bench_nerfacto_heads() {
     }
 }
 
+/// Inference (`record_inference`: one fused dispatch on lavapipe, the layer by layer forward elsewhere)
+/// gives the forward's outputs on nerfacto's heads and odd shapes, into a poisoned output buffer.
+#[test]
+fn inference_matches_cpu() {
+    let Some(gpu) = gpu() else { return };
+    // On lavapipe every shape fuses; nerfacto's colour head stages its two 64 x 64 layers in the 32 KiB
+    // of workgroup memory and reads the last from storage (both paths of the generated forward).
+    assert_eq!(
+        mlp::fuses_inference(&gpu, &MlpConfig::nerfacto_colour()),
+        gpu.straight_line_kernels()
+    );
+    let shapes = [
+        MlpConfig::nerfacto_density(),
+        MlpConfig::nerfacto_colour(),
+        cfg(17, 9, 3, 2, true),
+        cfg(5, 1, 0, 3, false),
+    ];
+    for (i, c) in shapes.into_iter().enumerate() {
+        let params = random_params(&c, 300 + i as u64);
+        let input = random_values(400 + i as u64, ROWS * c.input);
+        let want = forward_cpu(&c, &params, &input).unwrap();
+        let scale = forward_scale(&c, &params, &input);
+        let got = pollster::block_on(mlp::inference_gpu(&gpu, &c, &params, &input)).unwrap();
+        assert_eq!(got.len(), want.output.len());
+        assert!(
+            !got.iter().any(|&v| is_poison(v)),
+            "{c:?}: a row not written"
+        );
+        let e = scaled_error(&got, &want.output, &scale, 1e-6);
+        assert!(e < 1e-5, "{c:?}: inference vs CPU, scaled error {e}");
+    }
+}
+
 /// The loop form of the kernels (what every adapter but lavapipe runs: `GpuOptions::loop_kernels`) against
 /// the CPU reference on nerfacto's heads and an odd shape: forward, and the full backward.
 #[test]

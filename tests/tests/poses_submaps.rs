@@ -703,7 +703,9 @@ fn poses_refines_the_prior_and_names_a_textureless_image() {
         .find(|l| l.contains("part 2:"))
         .unwrap_or_else(|| panic!("no part 2 named: {said}"));
     assert!(
-        part2.contains("3 images") && part2.contains("alone-18.png") && part2.contains("alone-20.png"),
+        part2.contains("3 images")
+            && part2.contains("alone-18.png")
+            && part2.contains("alone-20.png"),
         "{part2}"
     );
     let r2 = json(&out2.join("report.json"));

@@ -802,6 +802,18 @@ fn uniform_for(cfg: &MlpConfig, n: u32, flags: u32) -> MlpUniform {
 /// WGSL constants that specialise `forward_layer` / `backward_layer` to layer `l` of `cfg` (see the header
 /// of mlp.wgsl); `None` gives the neutral prelude the shape-independent entry points compile with.
 fn layer_prelude(cfg: &MlpConfig, l: Option<usize>, straight: bool) -> String {
+    let ly = l.map(|l| cfg.layers()[l]);
+    let ws_len = ly.map_or(1, |ly| {
+        (ly.fan_out * ly.fan_in.div_ceil(4).max(1)).max(ly.fan_in * ly.fan_out.div_ceil(4).max(1))
+    });
+    layer_consts(cfg, l, straight, ws_len)
+        + "const F_OUT: u32 = 1u;\nfn stage_fused(li: u32) {}\n\
+           fn fused_forward(a: array<vec4<f32>, K4>) -> array<f32, F_OUT> {\n    var o: array<f32, F_OUT>;\n    return o;\n}\n"
+}
+
+/// The constants and products of layer `l`'s pipelines (see [`layer_prelude`]), `ws_len` vec4 words of
+/// staged weights.
+fn layer_consts(cfg: &MlpConfig, l: Option<usize>, straight: bool, ws_len: usize) -> String {
     let layers = cfg.layers();
     let (ly, below) = match l {
         Some(l) => (layers[l], l.checked_sub(1).map(|b| layers[b])),
@@ -823,7 +835,7 @@ fn layer_prelude(cfg: &MlpConfig, l: Option<usize>, straight: bool) -> String {
          const L_SAVED: u32 = {}u;\nconst L_DELTA: u32 = {}u;\nconst L_FIRST: bool = {};\nconst L_LAST: bool = {};\n\
          const L_SIGMOID: bool = {};\nconst L_BELOW_SAVED: u32 = {}u;\nconst L_BELOW_DELTA: u32 = {}u;\n\
          const SAVED_STRIDE: u32 = {}u;\nconst DELTA_STRIDE: u32 = {}u;\nconst WB: u32 = {}u;\nconst CHUNK: u32 = {}u;\n\
-         const ROWS_TILE: u32 = {ROWS_TILE}u;\nconst STAGED_ROWS: u32 = {}u;\n",
+         const ROWS_TILE: u32 = {ROWS_TILE}u;\nconst STAGED_ROWS: u32 = {}u;\nconst WS_LEN: u32 = {}u;\n",
         ly.fan_in,
         ly.fan_out,
         ly.weights,
@@ -844,6 +856,7 @@ fn layer_prelude(cfg: &MlpConfig, l: Option<usize>, straight: bool) -> String {
         } else {
             CHUNK_ROWS
         },
+        ws_len.max(1),
     ) + &layer_products(
         ly.fan_in,
         ly.fan_out,
@@ -912,6 +925,115 @@ fn layer_products(
             s += &format!(" o[{q}] += d[{r}] * tile[{}u];", r * b4 + q);
         }
         s += "\n";
+    }
+    s + "    return o;\n}\n"
+}
+
+/// What [`fused_prelude`] stages in workgroup memory, within `vec4s` words: each layer's weights
+/// `[fan_out][⌈fan_in/4⌉]`, layer after layer while they fit (a later layer that does not, such as the
+/// colour head's last behind its two 64 × 64 ones in 32 KiB, is read from `params` at lane-uniform
+/// addresses, like every bias). Returns the words staged and each layer's offset if staged.
+fn fused_layout(cfg: &MlpConfig, vec4s: usize) -> (usize, Vec<Option<usize>>) {
+    let mut at = 0;
+    let offsets = cfg
+        .layers()
+        .iter()
+        .map(|ly| {
+            let words = ly.fan_out * ly.fan_in.div_ceil(4).max(1);
+            (at + words <= vec4s).then(|| {
+                at += words;
+                at - words
+            })
+        })
+        .collect();
+    (at, offsets)
+}
+
+/// Vec4 words of workgroup memory `gpu` gives a workgroup (lavapipe: 32 KiB).
+fn workgroup_vec4s(gpu: &Gpu) -> usize {
+    gpu.device.limits().max_compute_workgroup_storage_size as usize / 16
+}
+
+/// Whether inference takes `forward_fused` on `gpu`: with the straight-line kernels (lavapipe,
+/// [`Gpu::straight_line_kernels`]), for every MLP.
+fn fused(gpu: &Gpu) -> bool {
+    gpu.straight_line_kernels()
+}
+
+/// The prelude of `forward_fused`: layer 0's (its input row loader) plus the whole network's staging and
+/// straight-line forward, each hidden row kept in the lane (one vec4 array per layer, constant indices).
+fn fused_prelude(cfg: &MlpConfig, vec4s: usize) -> String {
+    let (len, offsets) = fused_layout(cfg, vec4s);
+    let layers = cfg.layers();
+    let last = layers.len() - 1;
+    let mut s = layer_consts(cfg, Some(0), true, len.max(1));
+    s += &format!(
+        "const F_OUT: u32 = {}u;\nfn stage_fused(li: u32) {{\n",
+        cfg.output
+    );
+    for (ly, w) in layers.iter().zip(&offsets) {
+        let Some(w) = w else { continue };
+        let k4 = ly.fan_in.div_ceil(4).max(1);
+        let (fi, fo) = (ly.fan_in, ly.fan_out);
+        let word = |c: usize| {
+            format!(
+                "param_or_zero({}u + j * {fi}u + k + {c}u, k + {c}u < {fi}u)",
+                ly.weights
+            )
+        };
+        s += &format!(
+            "    for (var s = li; s < {}u; s += WG) {{\n        let j = s / {k4}u;\n        let k = 4u * (s - j * {k4}u);\n        \
+             ws[{w}u + s] = vec4<f32>({}, {}, {}, {});\n    }}\n",
+            fo * k4,
+            word(0),
+            word(1),
+            word(2),
+            word(3)
+        );
+    }
+    s += "}\nfn fused_forward(x0: array<vec4<f32>, K4>) -> array<f32, F_OUT> {\n    var o: array<f32, F_OUT>;\n";
+    for (l, (ly, w)) in layers.iter().zip(&offsets).enumerate() {
+        let k4 = ly.fan_in.div_ceil(4).max(1);
+        let fi = ly.fan_in;
+        if l < last {
+            s += &format!(
+                "    var x{}: array<vec4<f32>, {}>;\n",
+                l + 1,
+                ly.fan_out.div_ceil(4).max(1)
+            );
+        }
+        for j in 0..ly.fan_out {
+            let z = format!(
+                "params[{}u] + ((acc.x + acc.y) + (acc.z + acc.w))",
+                ly.bias + j
+            );
+            let store = if l < last {
+                format!("x{}[{}][{}] = max({z}, 0.0);", l + 1, j / 4, j % 4)
+            } else if cfg.output_activation == Activation::Sigmoid {
+                format!("o[{j}] = sigmoid1({z});")
+            } else {
+                format!("o[{j}] = {z};")
+            };
+            let weights = match w {
+                Some(w) => format!("ws[{}u + q]", w + j * k4),
+                None => {
+                    let at = ly.weights + j * fi;
+                    let word = |c: usize| {
+                        format!("param_or_zero({at}u + 4u * q + {c}u, 4u * q + {c}u < {fi}u)")
+                    };
+                    format!(
+                        "vec4<f32>({}, {}, {}, {})",
+                        word(0),
+                        word(1),
+                        word(2),
+                        word(3)
+                    )
+                }
+            };
+            s += &format!(
+                "    {{ var acc = vec4<f32>(0.0); for (var q = 0u; q < {k4}u; q++) {{ acc += x{l}[q] * {weights}; }} {store} }}\n"
+            );
+        }
     }
     s + "    return o;\n}\n"
 }
@@ -1018,6 +1140,49 @@ pub async fn record_forward(
         .await?;
     }
     Ok(())
+}
+
+/// Records an inference forward over `n` rows (no backward follows): [`record_forward`]'s outputs, but on
+/// lavapipe in one `forward_fused` dispatch (the layers' weights staged while they fit in workgroup memory,
+/// see [`fused_layout`]) whose hidden rows never leave the lane; `buffers.saved` is then not written.
+/// (Not on the loop-form adapters: its products are generated straight-line code, and GPUs there have
+/// not been measured with it.)
+/// Elsewhere the same as [`record_forward`].
+pub async fn record_inference(
+    gpu: &Gpu,
+    encoder: &mut wgpu::CommandEncoder,
+    config: &MlpConfig,
+    n: u32,
+    buffers: &ForwardBuffers<'_>,
+) -> Result<(), GpuError> {
+    if !fused(gpu) {
+        return record_forward(gpu, encoder, config, n, buffers).await;
+    }
+    check_batch(config, n)?;
+    let rows = n as usize;
+    need(buffers.params, config.n_params(), "parameter")?;
+    need(buffers.input, rows * config.input, "input")?;
+    need(buffers.output, rows * config.output, "output")?;
+    if n == 0 {
+        return Ok(());
+    }
+    let u = gpu.uniform("mlp.uniform", &uniform_for(config, n, 0));
+    gpu.dispatch_variant(
+        encoder,
+        &KERNEL,
+        &fused_prelude(config, workgroup_vec4s(gpu)),
+        "forward_fused",
+        // `saved` is bound (the shared row loader names it) but neither read nor written.
+        &[
+            (0, &u),
+            (1, buffers.params),
+            (2, buffers.input),
+            (3, buffers.output),
+            (4, buffers.saved),
+        ],
+        n,
+    )
+    .await
 }
 
 /// Records the backward over `n` rows: per layer, last first, the pre-activation gradients (one thread per
@@ -1168,6 +1333,40 @@ pub async fn forward_gpu(
         output: out.next().unwrap_or_default(),
         saved: out.next().unwrap_or_default(),
     })
+}
+
+/// Whether [`record_inference`] runs `config` as one fused dispatch on `gpu`.
+pub fn fuses_inference(gpu: &Gpu, config: &MlpConfig) -> bool {
+    let _ = config;
+    fused(gpu)
+}
+
+/// The WGSL inference forward on host data ([`record_inference`]): the outputs only.
+pub async fn inference_gpu(
+    gpu: &Gpu,
+    config: &MlpConfig,
+    params: &[f32],
+    input: &[f32],
+) -> Result<Vec<f32>, GpuError> {
+    let n = row_count(config, params, input)?;
+    let rows = n as usize;
+    let b_params = gpu.upload("mlp params", params)?;
+    let b_input = gpu.upload("mlp input", input)?;
+    let b_out = gpu.output("mlp output", rows * config.output)?;
+    let b_saved = gpu.output("mlp saved", rows * config.saved_per_row())?;
+    let mut enc = gpu.encoder("mlp inference");
+    let buffers = ForwardBuffers {
+        params: &b_params,
+        input: &b_input,
+        output: &b_out,
+        saved: &b_saved,
+    };
+    record_inference(gpu, &mut enc, config, n, &buffers).await?;
+    Ok(gpu
+        .finish_and_read::<f32>(enc, &[(&b_out, rows * config.output)])
+        .await?
+        .pop()
+        .unwrap_or_default())
 }
 
 /// The WGSL backward on host data (the forward's `saved` from either forward): dL/dparams and, if

@@ -175,10 +175,13 @@ impl Gpu {
         }
         let have = adapter.limits();
         check_baseline(&report.name, &have)?;
-        // Large scenes need big storage buffers: take what the adapter offers.
+        // Large scenes need big storage buffers: take what the adapter offers. Workgroup memory too: the
+        // kernels fit the 16 KiB baseline, and only a native fast path (mlp::record_inference on lavapipe)
+        // stages more where the device has it.
         let limits = wgpu::Limits {
             max_storage_buffer_binding_size: have.max_storage_buffer_binding_size,
             max_buffer_size: have.max_buffer_size,
+            max_compute_workgroup_storage_size: have.max_compute_workgroup_storage_size,
             ..Default::default()
         };
         let timestamps =

@@ -543,13 +543,14 @@ impl GpuEngine {
         jitter: bool,
         anneal: f32,
     ) -> Result<(), GpuError> {
-        self.record_density(enc, rays, normal_rays, jitter, anneal)
+        self.record_density(enc, rays, normal_rays, jitter, anneal, false)
             .await?;
         self.record_colour(enc, rays, normal_rays, None).await
     }
 
     /// The forward up to the field's density: proposal levels, final samples (+ FD positions), the hash
-    /// grid and the density MLP, and the mean appearance embedding.
+    /// grid and the density MLP, and the mean appearance embedding. `inference`: no backward follows, so
+    /// the MLPs may skip their saved activations (`mlp::record_inference`).
     async fn record_density(
         &self,
         enc: &mut wgpu::CommandEncoder,
@@ -557,6 +558,7 @@ impl GpuEngine {
         normal_rays: usize,
         jitter: bool,
         anneal: f32,
+        inference: bool,
     ) -> Result<(), GpuError> {
         let w = self.work.as_ref().expect("work buffers");
         let c = &self.cfg;
@@ -602,11 +604,11 @@ impl GpuEngine {
                 &lv.features,
             )
             .await?;
-            mlp::record_forward(
-                &self.gpu,
+            self.mlp_forward(
                 enc,
                 &c.proposal_mlp(l),
                 rows,
+                inference,
                 &ForwardBuffers {
                     params: &self.params[PROPOSAL + 2 * l + 1],
                     input: &lv.features,
@@ -685,11 +687,11 @@ impl GpuEngine {
             &w.features,
         )
         .await?;
-        mlp::record_forward(
-            &self.gpu,
+        self.mlp_forward(
             enc,
             &c.density_mlp(),
             rows,
+            inference,
             &ForwardBuffers {
                 params: &self.params[DENSITY],
                 input: &w.features,
@@ -710,6 +712,22 @@ impl GpuEngine {
             &[(18, &self.params[APPEARANCE]), (19, &w.mean_app)],
         )
         .await
+    }
+
+    /// One MLP's forward: for a backward to follow, or inference only (`mlp::record_inference`).
+    async fn mlp_forward(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        cfg: &mlp::MlpConfig,
+        rows: u32,
+        inference: bool,
+        b: &ForwardBuffers<'_>,
+    ) -> Result<(), GpuError> {
+        if inference {
+            mlp::record_inference(&self.gpu, enc, cfg, rows, b).await
+        } else {
+            mlp::record_forward(&self.gpu, enc, cfg, rows, b).await
+        }
     }
 
     /// The rest of the forward after [`Self::record_density`]: the colour MLP and the render inputs.
@@ -752,11 +770,11 @@ impl GpuEngine {
             ..per_sample
         };
         self.run(enc, input_entry, &u, &inputs).await?;
-        mlp::record_forward(
-            &self.gpu,
+        self.mlp_forward(
             enc,
             &c.colour_mlp(),
             rows,
+            selected.is_some(),
             &ForwardBuffers {
                 params: &self.params[COLOUR],
                 input: &w.colour_in,
@@ -1108,7 +1126,8 @@ impl GpuEngine {
             // Density first; the colour MLP then runs only where inference needs colour
             // (train::cpu::INFERENCE_MIN_WEIGHT): per-ray counts come back, their prefix goes up.
             let mut enc = self.gpu.encoder("render density");
-            self.record_density(&mut enc, r, nm, false, 1.0).await?;
+            self.record_density(&mut enc, r, nm, false, 1.0, true)
+                .await?;
             let base = self.base_uniform(r, nm);
             let per_ray = Uniform {
                 count: u32_of(r, "rays")?,
