@@ -737,11 +737,14 @@ fn bench_nerfacto_heads() {
 #[test]
 fn inference_matches_cpu() {
     let Some(gpu) = gpu() else { return };
-    // On lavapipe every shape fuses; nerfacto's colour head stages its two 64 x 64 layers in the 32 KiB
-    // of workgroup memory and reads the last from storage (both paths of the generated forward).
-    assert_eq!(
-        mlp::fuses_inference(&gpu, &MlpConfig::nerfacto_colour()),
-        gpu.straight_line_kernels()
+    // lavapipe (CI) must take the fused path this test is for. There every shape fuses: nerfacto's colour
+    // head stages its two 64 x 64 layers in the 32 KiB of workgroup memory and reads the last from storage
+    // (both paths of the generated forward).
+    let lavapipe = gpu.report().driver.contains("llvmpipe");
+    assert!(
+        !lavapipe || mlp::fuses_inference(&gpu),
+        "{:?}",
+        gpu.report()
     );
     let shapes = [
         MlpConfig::nerfacto_density(),

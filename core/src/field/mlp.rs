@@ -1335,9 +1335,9 @@ pub async fn forward_gpu(
     })
 }
 
-/// Whether [`record_inference`] runs `config` as one fused dispatch on `gpu`.
-pub fn fuses_inference(gpu: &Gpu, config: &MlpConfig) -> bool {
-    let _ = config;
+/// Whether [`record_inference`] runs each MLP as one fused dispatch on `gpu` (whatever its shape: layers
+/// beyond the workgroup memory are read from storage).
+pub fn fuses_inference(gpu: &Gpu) -> bool {
     fused(gpu)
 }
 
