@@ -1,8 +1,8 @@
 //! `silvr reconstruct`: the whole map from one dataset, the paper's end-to-end system — the poses stage
 //! (`silvr poses`: the dataset's poses taken as the SLAM prior and refined; `--poses skip` trains on them
 //! as they are), submaps (`silvr submaps`, co-visibility by the refined model's shared tracks), then per submap train → uncertainty → filtered export (`silvr train`'s job), then
-//! the merge (`silvr_core::submap::merge`: each submap filtered by its own uncertainty, the more certain
-//! submap keeps each overlapping voxel) and, where the dataset has ground truth, the evaluation of the
+//! the merge (`silvr_core::submap::merge`: each submap filtered by its own uncertainty, the submap whose
+//! training cameras are nearest keeps each overlapping voxel) and, where the dataset has ground truth, the evaluation of the
 //! merged map filtered and unfiltered.
 //!
 //! The per-submap work is a task (`silvr reconstruct-task OUT/reconstruct.json --index I`, the index from
@@ -569,6 +569,8 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
     let mut per_submap = Vec::new();
     let mut filtered = Vec::new();
     let mut unfiltered = Vec::new();
+    // Each merged submap's training cameras (the merge rule keeps a shared voxel's nearest submap).
+    let mut merge_cameras = Vec::new();
     for (k, name) in names.iter().enumerate() {
         if !m.done(k) {
             continue;
@@ -599,6 +601,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         }));
         filtered.push((k as u32, kept));
         unfiltered.push((k as u32, all));
+        merge_cameras.push(crate::renders::training_cameras(&subs.join(name))?);
     }
     let failed: Vec<serde_json::Value> = failures
         .iter()
@@ -612,8 +615,8 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         );
     }
     let merge_voxel = silvr_core::submap::MERGE_VOXEL_M;
-    let merged = silvr_core::submap::merge(&filtered, merge_voxel);
-    let merged_all = silvr_core::submap::merge(&unfiltered, merge_voxel);
+    let merged = silvr_core::submap::merge(&filtered, &merge_cameras, merge_voxel);
+    let merged_all = silvr_core::submap::merge(&unfiltered, &merge_cameras, merge_voxel);
     let merged_path = out.join("merged.ply");
     let merged_all_path = out.join("merged_unfiltered.ply");
     // `write_ply` writes atomically: a kill never leaves half a merged map.
@@ -785,7 +788,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         "submaps": plan,
         "per_submap": per_submap,
         "single": single,
-        "merge": { "rule": "per 0.2 m voxel, the submap with the lowest median log_std_combined there keeps its points", "voxel_m": merge_voxel },
+        "merge": { "rule": "per 0.2 m voxel shared by submaps, the one whose training cameras are nearest (median over its points there) keeps its points; lower median log_std_combined breaks ties", "voxel_m": merge_voxel },
         "failed": failed,
         "merged_points": merged.len(),
         "merged_unfiltered_points": merged_all.len(),
