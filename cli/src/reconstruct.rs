@@ -1,9 +1,10 @@
 //! `silvr reconstruct`: the whole map from one dataset, the paper's end-to-end system — the poses stage
 //! (`silvr poses`: the dataset's poses taken as the SLAM prior and refined; `--poses skip` trains on them
-//! as they are), submaps (`silvr submaps`, co-visibility by the refined model's shared tracks), then per submap train → uncertainty → filtered export (`silvr train`'s job), then
-//! the merge (`silvr_core::submap::merge`: each submap filtered by its own uncertainty, the submap whose
-//! training cameras are nearest keeps each overlapping voxel) and, where the dataset has ground truth, the evaluation of the
-//! merged map filtered and unfiltered.
+//! as they are), submaps (`silvr submaps`, co-visibility by the refined model's shared tracks), then per
+//! submap train → uncertainty → filtered export (`silvr train`'s job), then the merge
+//! (`silvr_core::submap::merge`: each submap filtered by its own uncertainty, the submap whose training
+//! cameras are nearest keeps each overlapping voxel) and, where the dataset has ground truth, the
+//! evaluation of the merged map filtered and unfiltered.
 //!
 //! The per-submap work is a task (`silvr reconstruct-task OUT/reconstruct.json --index I`, the index from
 //! `SLURM_ARRAY_TASK_ID` when not given): `reconstruct.json` records what every task is computed from (the
