@@ -267,7 +267,10 @@ export function trainSuite(driver) {
       // The view lives on in the new worker: its kernel check ran and passed.
       assert.equal(await driver.evaluate(page, () => document.querySelector('#projection').dataset.passed), 'true');
       console.log(`${driver.name}: the worker crashed after a checkpoint at step ${from}; a new worker resumed it and finished`);
-      const errors = log.filter((x) => x.startsWith('[pageerror]'));
+      // A readback in flight when the worker panics is rejected as the dead worker goes (Firefox reports
+      // the unhandled "AbortError: Buffer unmapped" to the page, depending on timing): a consequence of the
+      // crash this test causes, not an error of the studio's.
+      const errors = log.filter((x) => x.startsWith('[pageerror]') && !x.includes('AbortError: Buffer unmapped'));
       assert.deepEqual(errors, [], log.join('\n'));
       await page.close();
     });
