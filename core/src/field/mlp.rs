@@ -954,12 +954,6 @@ fn workgroup_vec4s(gpu: &Gpu) -> usize {
     gpu.device.limits().max_compute_workgroup_storage_size as usize / 16
 }
 
-/// Whether inference takes `forward_fused` on `gpu`: with the straight-line kernels (lavapipe,
-/// [`Gpu::straight_line_kernels`]), for every MLP.
-fn fused(gpu: &Gpu) -> bool {
-    gpu.straight_line_kernels()
-}
-
 /// The prelude of `forward_fused`: layer 0's (its input row loader) plus the whole network's staging and
 /// straight-line forward, each hidden row kept in the lane (one vec4 array per layer, constant indices).
 fn fused_prelude(cfg: &MlpConfig, vec4s: usize) -> String {
@@ -1155,7 +1149,7 @@ pub async fn record_inference(
     n: u32,
     buffers: &ForwardBuffers<'_>,
 ) -> Result<(), GpuError> {
-    if !fused(gpu) {
+    if !fuses_inference(gpu) {
         return record_forward(gpu, encoder, config, n, buffers).await;
     }
     check_batch(config, n)?;
@@ -1305,6 +1299,36 @@ pub async fn forward_gpu(
     params: &[f32],
     input: &[f32],
 ) -> Result<MlpForward, GpuError> {
+    let (output, saved) = forward_on_host(gpu, config, params, input, false).await?;
+    Ok(MlpForward { output, saved })
+}
+
+/// Whether [`record_inference`] runs each MLP as one fused dispatch on `gpu` (whatever its shape: layers
+/// beyond the workgroup memory are read from storage): with the straight-line kernels (lavapipe,
+/// [`Gpu::straight_line_kernels`]).
+pub fn fuses_inference(gpu: &Gpu) -> bool {
+    gpu.straight_line_kernels()
+}
+
+/// The WGSL inference forward on host data ([`record_inference`]): the outputs only.
+pub async fn inference_gpu(
+    gpu: &Gpu,
+    config: &MlpConfig,
+    params: &[f32],
+    input: &[f32],
+) -> Result<Vec<f32>, GpuError> {
+    Ok(forward_on_host(gpu, config, params, input, true).await?.0)
+}
+
+/// [`forward_gpu`] and [`inference_gpu`]: uploads, the forward ([`record_inference`] if `inference`, which
+/// leaves the saved activations unread), one readback of the outputs and, for the forward, the saved rows.
+async fn forward_on_host(
+    gpu: &Gpu,
+    config: &MlpConfig,
+    params: &[f32],
+    input: &[f32],
+    inference: bool,
+) -> Result<(Vec<f32>, Vec<f32>), GpuError> {
     let n = row_count(config, params, input)?;
     let rows = n as usize;
     let b_params = gpu.upload("mlp params", params)?;
@@ -1318,55 +1342,18 @@ pub async fn forward_gpu(
         output: &b_out,
         saved: &b_saved,
     };
-    record_forward(gpu, &mut enc, config, n, &buffers).await?;
-    let mut out = gpu
-        .finish_and_read::<f32>(
-            enc,
-            &[
-                (&b_out, rows * config.output),
-                (&b_saved, rows * config.saved_per_row()),
-            ],
-        )
-        .await?
-        .into_iter();
-    Ok(MlpForward {
-        output: out.next().unwrap_or_default(),
-        saved: out.next().unwrap_or_default(),
-    })
-}
-
-/// Whether [`record_inference`] runs each MLP as one fused dispatch on `gpu` (whatever its shape: layers
-/// beyond the workgroup memory are read from storage).
-pub fn fuses_inference(gpu: &Gpu) -> bool {
-    fused(gpu)
-}
-
-/// The WGSL inference forward on host data ([`record_inference`]): the outputs only.
-pub async fn inference_gpu(
-    gpu: &Gpu,
-    config: &MlpConfig,
-    params: &[f32],
-    input: &[f32],
-) -> Result<Vec<f32>, GpuError> {
-    let n = row_count(config, params, input)?;
-    let rows = n as usize;
-    let b_params = gpu.upload("mlp params", params)?;
-    let b_input = gpu.upload("mlp input", input)?;
-    let b_out = gpu.output("mlp output", rows * config.output)?;
-    let b_saved = gpu.output("mlp saved", rows * config.saved_per_row())?;
-    let mut enc = gpu.encoder("mlp inference");
-    let buffers = ForwardBuffers {
-        params: &b_params,
-        input: &b_input,
-        output: &b_out,
-        saved: &b_saved,
-    };
-    record_inference(gpu, &mut enc, config, n, &buffers).await?;
-    Ok(gpu
-        .finish_and_read::<f32>(enc, &[(&b_out, rows * config.output)])
-        .await?
-        .pop()
-        .unwrap_or_default())
+    let mut reads = vec![(&b_out, rows * config.output)];
+    if inference {
+        record_inference(gpu, &mut enc, config, n, &buffers).await?;
+    } else {
+        record_forward(gpu, &mut enc, config, n, &buffers).await?;
+        reads.push((&b_saved, rows * config.saved_per_row()));
+    }
+    let mut out = gpu.finish_and_read::<f32>(enc, &reads).await?.into_iter();
+    Ok((
+        out.next().unwrap_or_default(),
+        out.next().unwrap_or_default(),
+    ))
 }
 
 /// The WGSL backward on host data (the forward's `saved` from either forward): dL/dparams and, if
