@@ -642,6 +642,18 @@ fn main() {
 /// The transforms.json a command named (a dataset folder means the one inside it). Plain files only:
 /// these commands write paths relative to it or read poses, so the archives `source::open` also takes
 /// are not for them.
+/// A synthetic world's ground truth of one image: `<world>/images/<rest>` → `<world>/gt/<kind>/<rest>`,
+/// wherever the transforms file naming the image lives (a poses or submap output names it
+/// `../<world>/images/...`). `None` when the path has no `images` folder or the file is not there.
+pub(crate) fn synthetic_gt_file(image: &Path, kind: &str) -> Option<PathBuf> {
+    let parts: Vec<_> = image.components().collect();
+    let k = parts.iter().rposition(|c| c.as_os_str() == "images")?;
+    let world: PathBuf = parts[..k].iter().collect();
+    let rest: PathBuf = parts[k + 1..].iter().collect();
+    let file = world.join("gt").join(kind).join(rest);
+    file.is_file().then_some(file)
+}
+
 pub(crate) fn transforms_file(p: &Path) -> PathBuf {
     if p.is_dir() {
         p.join("transforms.json")
@@ -1307,14 +1319,18 @@ fn report_json(r: &GeometryReport) -> serde_json::Value {
 }
 
 pub(crate) fn print_table(rows: &[(&str, &GeometryReport)]) {
+    let width = rows
+        .iter()
+        .map(|(n, _)| n.chars().count())
+        .fold(20, usize::max);
     println!(
-        "{:<20} {:>10} {:>10} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "{:<width$} {:>10} {:>10} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
         "method", "acc [m]", "comp [m]", "P@5cm", "R@5cm", "F@5cm", "P@10cm", "R@10cm", "F@10cm"
     );
     for (name, r) in rows {
         let g = |k: &str| r.per_threshold.get(k).copied().unwrap_or(f64::NAN);
         println!(
-            "{:<20} {:>10.4} {:>10.4} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3}",
+            "{:<width$} {:>10.4} {:>10.4} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3}",
             name,
             r.accuracy_m,
             r.completeness_m,

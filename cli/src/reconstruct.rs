@@ -702,6 +702,54 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             rows.push((key.to_string(), ev.clone()));
             table.insert(key.to_string(), serde_json::to_value(&ev)?);
         }
+        // Each submap's own clouds scored on what its training cameras saw (synthetic worlds only: that
+        // takes each image's exact depth), so a cut is judged by how well each side reconstructs its part.
+        let to_gt = alignment.map(|a| a.to_mat4());
+        let mut seen_rows = Vec::new();
+        for (k, name) in names.iter().enumerate() {
+            if !m.done(k) {
+                continue;
+            }
+            let Some(seen) = seen_by(&subs.join(name), to_gt.as_ref())? else {
+                break;
+            };
+            let gt_idx = seen.select(&truth.cloud.positions);
+            let mut entry = serde_json::json!({ "name": name, "gt_points_seen": gt_idx.len() });
+            for (key, file) in [
+                ("unfiltered", "points.ply"),
+                ("filtered", "points_filtered.ply"),
+            ] {
+                let path = m.dir(name).join(file);
+                if !path.is_file() || gt_idx.is_empty() {
+                    continue;
+                }
+                let cloud =
+                    read_ply(&path).with_context(|| format!("reading {}", path.display()))?;
+                let ev = truth.evaluate_within(&cloud, &gt_idx, &opts)?.report;
+                entry[key] = serde_json::to_value(&ev)?;
+                rows.push((format!("{name} {key}, its view"), ev));
+            }
+            seen_rows.push(entry);
+        }
+        if !seen_rows.is_empty() {
+            let mean = |key: &str, field: &dyn Fn(&serde_json::Value) -> Option<f64>| {
+                let v: Vec<f64> = seen_rows.iter().filter_map(|e| field(&e[key])).collect();
+                (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+            };
+            let acc = |r: &serde_json::Value| r["accuracy_m"].as_f64();
+            let f10 = |r: &serde_json::Value| r["fscore_10cm"].as_f64();
+            let r10 = |r: &serde_json::Value| r["recall_10cm"].as_f64();
+            table.insert(
+                "per_submap_seen".into(),
+                serde_json::json!({
+                    "what": "each submap's clouds against the GT its own training cameras saw (exact depth, 0.2 m voxels)",
+                    "submaps": seen_rows,
+                    "mean_accuracy_m": { "unfiltered": mean("unfiltered", &acc), "filtered": mean("filtered", &acc) },
+                    "mean_fscore_10cm": { "unfiltered": mean("unfiltered", &f10), "filtered": mean("filtered", &f10) },
+                    "mean_recall_10cm": { "unfiltered": mean("unfiltered", &r10), "filtered": mean("filtered", &r10) },
+                }),
+            );
+        }
         crate::print_table(
             &rows
                 .iter()
@@ -912,6 +960,47 @@ fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
 
 /// `finished` of the tasks `todo` of this run are over after `t`: how many, and the time left at that
 /// pace.
+/// What a submap's training cameras saw, from each image's exact depth (`gt/depth`, synthetic worlds),
+/// in the GT frame (`to_gt` as the evaluation maps the clouds). `None` when an image has no exact depth.
+fn seen_by(
+    submap_dataset: &Path,
+    to_gt: Option<&glam::DMat4>,
+) -> Result<Option<silvr_core::eval::SeenVoxels>> {
+    /// The merge's voxel: a GT point counts as seen when an exact depth sample fell in its 0.2 m cell.
+    const VOXEL_M: f64 = 0.2;
+    let json = crate::transforms_file(submap_dataset);
+    let (frames, _, val) = silvr_core::dataset::read_frames(&json)?;
+    let base = json.parent().unwrap_or(Path::new("."));
+    let mut seen = silvr_core::eval::SeenVoxels::new(VOXEL_M);
+    for f in frames.iter().filter(|f| !val.contains(&f.file_path)) {
+        let Some(depth) = crate::synthetic_gt_file(&base.join(&f.file_path), "depth") else {
+            return Ok(None);
+        };
+        let (model, pose) = f.camera(&json)?;
+        let (w, h, px) = silvr_core::dataset::read_png16(&depth)?;
+        if (w, h) != (model.width, model.height) {
+            anyhow::bail!(
+                "{}: {w}x{h}, but {} is {}x{} in {}",
+                depth.display(),
+                f.file_path,
+                model.width,
+                model.height,
+                json.display()
+            );
+        }
+        // 16-bit range × 256; 0 is sky and the maximum is out of range.
+        let range: Vec<f32> = px
+            .iter()
+            .map(|&v| match v {
+                0 | u16::MAX => f32::NAN,
+                v => v as f32 / 256.0,
+            })
+            .collect();
+        seen.add_view(&model, &pose, to_gt, &range, 1);
+    }
+    Ok(Some(seen))
+}
+
 fn progress(todo: &[usize], finished: usize, t: Instant) {
     if finished == 0 || finished >= todo.len() {
         return;

@@ -164,6 +164,11 @@ pub fn run(cmd: ServeCmd) -> Result<()> {
 /// `silvr serve OUT` as a command the user can paste: this binary's absolute path, quoted for a shell.
 pub fn open_command(out: &Path) -> String {
     let exe = std::env::current_exe().unwrap_or_else(|_| PathBuf::from("silvr"));
+    // Linux names a binary rebuilt while it ran "<path> (deleted)"; the path itself holds the new build.
+    let exe = exe
+        .to_str()
+        .and_then(|s| s.strip_suffix(" (deleted)"))
+        .map_or(exe.clone(), PathBuf::from);
     let out = out.canonicalize().unwrap_or_else(|_| out.to_path_buf());
     format!(
         "{} serve {}",

@@ -304,20 +304,13 @@ pub fn by_label(dataset: &Path, fisher: &Fisher) -> Result<Option<serde_json::Va
     let mut band_of: Vec<Vec<usize>> = vec![Vec::new(); Label::ALL.len()];
     let mut under = Vec::new();
     for &i in &data.train {
-        // `<world>/images/<rest>` → `<world>/gt/{semantic,depth}/<rest>`, wherever the transforms file
-        // that names the image lives (a poses output names it `../<world>/images/...`).
         let full = data.root.join(&data.images[i].name);
-        let parts: Vec<_> = full.components().collect();
-        let Some(k) = parts.iter().rposition(|c| c.as_os_str() == "images") else {
+        let (Some(sem), Some(dep)) = (
+            crate::synthetic_gt_file(&full, "semantic"),
+            crate::synthetic_gt_file(&full, "depth"),
+        ) else {
             return Ok(None);
         };
-        let world: PathBuf = parts[..k].iter().collect();
-        let rest: PathBuf = parts[k + 1..].iter().collect();
-        let sem = world.join("gt/semantic").join(&rest);
-        let dep = world.join("gt/depth").join(&rest);
-        if !(sem.is_file() && dep.is_file()) {
-            return Ok(None);
-        }
         let sem = image::open(&sem)
             .with_context(|| format!("reading {}", sem.display()))?
             .to_luma8();

@@ -363,6 +363,31 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
         .as_f64()
         .unwrap()
         .is_finite());
+    // Each submap scored on its own clouds against the part of the GT its cameras saw (exact depth).
+    let per_submap = report["per_submap"].as_array().unwrap();
+    let seen = ev["per_submap_seen"]["submaps"].as_array().unwrap();
+    let gt_all = ev["filtered"]["counts"]["gt_input"].as_u64().unwrap();
+    assert_eq!(seen.len(), per_submap.len(), "{}", ev["per_submap_seen"]);
+    for (s, p) in seen.iter().zip(per_submap) {
+        assert_eq!(s["name"], p["name"]);
+        let n = s["gt_points_seen"].as_u64().unwrap();
+        assert!(
+            n > 0 && n < gt_all,
+            "{}: {n} of {gt_all} GT points seen",
+            s["name"]
+        );
+        assert_eq!(s["filtered"]["counts"]["gt_input"].as_u64(), Some(n));
+        assert_eq!(s["filtered"]["counts"]["reconstruction_input"], p["kept"]);
+        assert_eq!(
+            s["unfiltered"]["counts"]["reconstruction_input"],
+            p["points"]
+        );
+        let acc = s["filtered"]["accuracy_m"].as_f64().unwrap_or(f64::NAN);
+        assert!(acc.is_finite() && acc > 0.0, "{s}");
+    }
+    assert!(ev["per_submap_seen"]["mean_accuracy_m"]["filtered"]
+        .as_f64()
+        .is_some_and(f64::is_finite));
     // The boundary zone is part of the merged map: no more points than it.
     assert!(
         ev["boundary_filtered"]["counts"]["reconstruction_input"]

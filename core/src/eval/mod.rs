@@ -5,7 +5,8 @@
 //!   to the GT box, 1 cm voxelisation and removal of GT-unknown space;
 //! - [`occupancy`]: the observed-space grid (OctoMap leaf level at 0.1 m) behind "unknown space";
 //! - [`image`]: PSNR and SSIM for novel views;
-//! - [`report`]: the JSON report and error-coloured clouds.
+//! - [`report`]: the JSON report and error-coloured clouds;
+//! - [`seen`]: the part of the GT a set of cameras sees (a submap scored on what it could reconstruct).
 //!
 //! On disk a ground-truth folder holds `gt/cloud.ply` and optionally `gt/observed.bin`
 //! ([`OccupancyGrid::save`]); [`evaluate_files`] reads both.
@@ -18,6 +19,7 @@ pub mod options;
 pub mod plot;
 pub mod poses;
 pub mod report;
+pub mod seen;
 
 pub use image::{psnr, psnr_rgb8, ssim, ssim_rgb8, ImageMetricError};
 pub use metrics::{
@@ -26,6 +28,7 @@ pub use metrics::{
 };
 pub use occupancy::{OccupancyError, OccupancyGrid, OccupancyParams, VoxelState};
 pub use report::{error_colored_cloud, GeometryReport, PointCounts, ThresholdScores};
+pub use seen::SeenVoxels;
 
 use crate::pointcloud::{read_ply, PlyError, PointCloud};
 use std::path::{Path, PathBuf};
@@ -132,18 +135,37 @@ impl GroundTruth {
         rec: &PointCloud,
         options: &GeometryOptions,
     ) -> Result<GeometryEvaluation, EvalError> {
+        self.evaluate_against(rec, &self.cloud, options)
+    }
+
+    /// [`Self::evaluate`] against only the GT points `gt_indices` (what one submap's cameras saw, say),
+    /// with the same observed-space grid.
+    pub fn evaluate_within(
+        &self,
+        rec: &PointCloud,
+        gt_indices: &[usize],
+        options: &GeometryOptions,
+    ) -> Result<GeometryEvaluation, EvalError> {
+        self.evaluate_against(rec, &self.cloud.select(gt_indices), options)
+    }
+
+    fn evaluate_against(
+        &self,
+        rec: &PointCloud,
+        gt: &PointCloud,
+        options: &GeometryOptions,
+    ) -> Result<GeometryEvaluation, EvalError> {
         let paths = &self.paths;
         let observed = ObservedSpace {
             gt: self.grid.as_ref(),
             sensor: None,
         };
-        let mut eval =
-            evaluate_geometry(rec, &self.cloud, observed, options).map_err(|e| match e {
-                EvalError::EmptyGroundTruth { .. } => EvalError::EmptyGroundTruth {
-                    file: paths.cloud.display().to_string(),
-                },
-                other => other,
-            })?;
+        let mut eval = evaluate_geometry(rec, gt, observed, options).map_err(|e| match e {
+            EvalError::EmptyGroundTruth { .. } => EvalError::EmptyGroundTruth {
+                file: paths.cloud.display().to_string(),
+            },
+            other => other,
+        })?;
         if options.filter_unknown && self.grid.is_none() {
             let missing = paths.cloud.with_file_name("observed.bin");
             eval.report
