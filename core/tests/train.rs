@@ -218,6 +218,11 @@ fn vision_data_without_depth_trains_and_has_no_lidar() {
 fn real_fox_capture_loads_and_trains_when_present() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/real/fox");
     if !dir.join("transforms.json").is_file() {
+        assert!(
+            std::env::var_os("SILVR_REQUIRE_DATA").is_none(),
+            "{} absent and SILVR_REQUIRE_DATA is set",
+            dir.display()
+        );
         eprintln!("skipping: {} absent", dir.display());
         return;
     }

@@ -50,8 +50,19 @@ pub fn workspace_root() -> PathBuf {
         .to_path_buf()
 }
 
-/// `../shared` beside the repository, where third-party test data lives (may be absent).
-pub fn shared_dir() -> Option<PathBuf> {
-    let p = workspace_root().join("..").join("shared");
-    p.is_dir().then_some(p)
+/// `../shared/data/<rel>` beside the repository, where third-party test data lives, or `None` with a line
+/// saying the test skips. With `SILVR_REQUIRE_DATA` set (CI sets it when `../shared/data` is there) an
+/// absent file is a failure instead, so a test cannot pass by skipping silently.
+pub fn shared_data(rel: &str) -> Option<PathBuf> {
+    let p = workspace_root().join("../shared/data").join(rel);
+    if p.exists() {
+        return Some(p);
+    }
+    assert!(
+        std::env::var_os("SILVR_REQUIRE_DATA").is_none(),
+        "{} is absent and SILVR_REQUIRE_DATA is set",
+        p.display()
+    );
+    eprintln!("skipping: {} absent", p.display());
+    None
 }

@@ -301,11 +301,10 @@ fn broken_archives_name_the_file_and_the_problem() {
 /// archive; the archive is left for the studio's browser test. Skips cleanly when the data is absent.
 #[test]
 fn a_nerfstudio_capture_packs_and_trains_vision_only_when_present() {
-    let fox = silvr_tests::workspace_root().join("../shared/data/real/fox");
-    if !fox.join("transforms.json").is_file() {
-        eprintln!("skipping: {} absent", fox.display());
+    let Some(fox) = silvr_tests::shared_data("real/fox/transforms.json") else {
         return;
-    }
+    };
+    let fox = fox.parent().unwrap().to_path_buf();
     let tmp = tempfile::tempdir().unwrap();
     let tar = tmp.path().join("fox.tar");
     let said = run(&[
