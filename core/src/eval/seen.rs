@@ -82,11 +82,23 @@ impl SeenVoxels {
         added
     }
 
-    /// Indices of the points (GT frame) whose voxel was seen.
+    /// Indices of the points (GT frame) in or next to a seen voxel: a point counts as seen when a voxel
+    /// within a quarter voxel of it (along each axis) was hit. Without that slack a surface lying on a voxel
+    /// face (a synthetic facade at y = −10 m, say) would be split by rounding noise between the voxels on
+    /// either side, its GT points and its depth samples falling on different sides.
     pub fn select(&self, points: &[DVec3]) -> Vec<usize> {
-        (0..points.len())
-            .filter(|&i| self.keys.contains(&self.key(points[i])))
-            .collect()
+        let d = 0.25 * self.voxel;
+        let seen = |p: DVec3| {
+            (0..8).any(|c: u32| {
+                let o = DVec3::new(
+                    if c & 1 == 0 { -d } else { d },
+                    if c & 2 == 0 { -d } else { d },
+                    if c & 4 == 0 { -d } else { d },
+                );
+                self.keys.contains(&self.key(p + o))
+            })
+        };
+        (0..points.len()).filter(|&i| seen(points[i])).collect()
     }
 }
 
@@ -103,10 +115,11 @@ mod tests {
         // OpenCV axes: z forward. Rotate so the camera's +z points down the world's −z.
         let pose = Se3::new(
             DQuat::from_rotation_x(std::f64::consts::PI),
-            DVec3::new(0.0, 0.0, 5.125),
+            DVec3::new(0.0, 0.0, 5.25),
         );
-        // The floor is at z = 0.125 (mid-voxel, away from rounding at voxel faces); the footprint at 5 m is
-        // ±4.9 m. A box 1 m tall covers x in [1, 2], y in [1, 2]: depth stops on its top.
+        // The floor is at z = 0.25, on a voxel face: rounding puts its depth samples and GT points on either
+        // side. The footprint at 5 m is ±4.9 m. A box 1 m tall covers x in [1, 2], y in [1, 2]: depth stops
+        // on its top.
         let mut range = vec![0.0f32; 40 * 40];
         for y in 0..40 {
             for x in 0..40 {
@@ -129,12 +142,12 @@ mod tests {
         let added = seen.add_view(&model, &pose, None, &range, 1);
         assert_eq!(added, 40 * 40 - 1, "the NaN pixel is skipped");
         let gt = [
-            DVec3::new(0.1, 0.1, 0.13),  // floor under the camera
-            DVec3::new(-4.0, 3.0, 0.13), // floor near the footprint's corner
-            DVec3::new(9.0, 0.0, 0.13),  // floor outside the view
-            DVec3::new(1.6, 1.6, 1.13),  // the box's top
-            DVec3::new(1.6, 1.6, 0.13),  // floor under the box: hidden
-            DVec3::new(0.1, 0.1, -3.0),  // under the floor
+            DVec3::new(0.1, 0.1, 0.25 - 1e-9),  // floor under the camera
+            DVec3::new(-4.0, 3.0, 0.25 + 1e-9), // floor near the footprint's corner
+            DVec3::new(9.0, 0.0, 0.25),         // floor outside the view
+            DVec3::new(1.6, 1.6, 1.25 - 1e-9),  // the box's top
+            DVec3::new(1.6, 1.6, 0.25),         // floor under the box: hidden
+            DVec3::new(0.1, 0.1, -3.0),         // under the floor
         ];
         assert_eq!(seen.select(&gt), vec![0, 1, 3]);
         // A transform into the GT frame moves what is seen with it.
