@@ -66,3 +66,23 @@ pub fn shared_data(rel: &str) -> Option<PathBuf> {
     eprintln!("skipping: {} absent", p.display());
     None
 }
+
+#[cfg(test)]
+mod tests {
+    /// Absent data skips, unless SILVR_REQUIRE_DATA asks for it; present data is found either way. (The
+    /// only test in this crate's unit tests, so setting the variable races with nothing.)
+    #[test]
+    fn shared_data_skips_or_fails_when_absent() {
+        std::env::remove_var("SILVR_REQUIRE_DATA");
+        assert_eq!(super::shared_data("no/such/capture"), None);
+        std::env::set_var("SILVR_REQUIRE_DATA", "1");
+        let required = std::panic::catch_unwind(|| super::shared_data("no/such/capture"));
+        std::env::remove_var("SILVR_REQUIRE_DATA");
+        let msg = required.unwrap_err();
+        let msg = msg.downcast_ref::<String>().unwrap();
+        assert!(
+            msg.contains("no/such/capture") && msg.contains("SILVR_REQUIRE_DATA"),
+            "{msg}"
+        );
+    }
+}
