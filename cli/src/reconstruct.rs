@@ -750,6 +750,16 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
                 }),
             );
         }
+        // The trade-off the studio's filter slider makes, over the whole merged map: its unfiltered points
+        // ranked by their log-std (one threshold across submaps), the most uncertain dropped first.
+        let curve = filter_curve(&truth, &opts, &merged_all)?;
+        if !curve.is_empty() {
+            table.insert("filter_curve".into(), serde_json::to_value(&curve)?);
+        }
+        table.insert(
+            "plots".into(),
+            serde_json::to_value(report_plots(&out, &rows, &curve)?)?,
+        );
         crate::print_table(
             &rows
                 .iter()
@@ -960,6 +970,125 @@ fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
 
 /// `finished` of the tasks `todo` of this run are over after `t`: how many, and the time left at that
 /// pace.
+/// One point of the merged map's filter curve.
+#[derive(serde::Serialize)]
+struct CurvePoint {
+    kept_fraction: f64,
+    accuracy_m: f64,
+    recall_10cm: f64,
+}
+
+/// Accuracy and completeness (GT within 10 cm) of the unfiltered merged map keeping its least uncertain
+/// 100 %, 90 % … 50 % of points by `log_std_combined`. Empty when the cloud has no log-std.
+fn filter_curve(
+    truth: &eval::GroundTruth,
+    opts: &GeometryOptions,
+    merged_all: &silvr_core::pointcloud::PointCloud,
+) -> Result<Vec<CurvePoint>> {
+    let Some(log_std) = merged_all.scalar("log_std_combined") else {
+        return Ok(Vec::new());
+    };
+    let mut order: Vec<usize> = (0..log_std.len())
+        .filter(|&i| log_std[i].is_finite())
+        .collect();
+    order.sort_by(|&a, &b| log_std[a].total_cmp(&log_std[b]));
+    let mut curve = Vec::new();
+    for kept in [1.0, 0.9, 0.8, 0.7, 0.6, 0.5] {
+        let n = ((order.len() as f64 * kept).round() as usize).max(1);
+        if n > order.len() {
+            break;
+        }
+        let r = truth
+            .evaluate(&merged_all.select(&order[..n]), opts)?
+            .report;
+        let recall = r
+            .thresholds
+            .iter()
+            .find(|t| (t.threshold_m - 0.10).abs() < 1e-9)
+            .map_or(f64::NAN, |t| t.recall);
+        curve.push(CurvePoint {
+            kept_fraction: kept,
+            accuracy_m: r.accuracy_m,
+            recall_10cm: recall,
+        });
+    }
+    Ok(curve)
+}
+
+/// The report's charts, beside report.json: the F-score of each map by distance threshold, and the filter
+/// curve relative to the unfiltered map. Returns the files written.
+fn report_plots(
+    out: &Path,
+    rows: &[(String, silvr_core::eval::GeometryReport)],
+    curve: &[CurvePoint],
+) -> Result<Vec<String>> {
+    use silvr_core::eval::plot;
+    let mut written = Vec::new();
+    let maps: Vec<(&str, Vec<f64>, Vec<f64>)> = [
+        ("single_unfiltered", "one field"),
+        ("unfiltered", "merged"),
+        ("filtered", "merged, filtered"),
+        ("boundary_filtered", "boundary zone, filtered"),
+    ]
+    .iter()
+    .filter_map(|(key, label)| {
+        let r = &rows.iter().find(|(k, _)| k == key)?.1;
+        let x = r.thresholds.iter().map(|t| t.threshold_m * 100.0).collect();
+        let y = r.thresholds.iter().map(|t| t.fscore).collect();
+        Some((*label, x, y))
+    })
+    .collect();
+    if !maps.is_empty() {
+        let series: Vec<plot::Series> = maps
+            .iter()
+            .enumerate()
+            .map(|(k, (name, x, y))| plot::Series {
+                name,
+                x,
+                y,
+                colour: plot::PALETTE[k % plot::PALETTE.len()],
+            })
+            .collect();
+        let img = plot::line_chart("F-score by threshold", "threshold (cm)", "F-score", &series);
+        crate::write_atomic(&out.join("fscore.png"), &plot::png_bytes(&img))?;
+        written.push("fscore.png".to_string());
+    }
+    if let Some(all) = curve.first() {
+        let x: Vec<f64> = curve.iter().map(|c| c.kept_fraction).collect();
+        let acc: Vec<f64> = curve
+            .iter()
+            .map(|c| c.accuracy_m / all.accuracy_m)
+            .collect();
+        let rec: Vec<f64> = curve
+            .iter()
+            .map(|c| c.recall_10cm / all.recall_10cm)
+            .collect();
+        let series = [
+            plot::Series {
+                name: "accuracy (mean error)",
+                x: &x,
+                y: &acc,
+                colour: plot::PALETTE[0],
+            },
+            plot::Series {
+                name: "GT within 10 cm",
+                x: &x,
+                y: &rec,
+                colour: plot::PALETTE[1],
+            },
+        ];
+        let img = plot::line_chart(
+            "merged map filtered by its uncertainty",
+            "fraction of points kept (least uncertain)",
+            "relative to unfiltered",
+            &series,
+        );
+        crate::write_atomic(&out.join("filter_curve.png"), &plot::png_bytes(&img))?;
+        written.push("filter_curve.png".to_string());
+    }
+    Ok(written)
+}
+
 /// What a submap's training cameras saw, from each image's exact depth (`gt/depth`, synthetic worlds),
 /// in the GT frame (`to_gt` as the evaluation maps the clouds). `None` when an image has no exact depth.
 fn seen_by(

@@ -388,6 +388,23 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
     assert!(ev["per_submap_seen"]["mean_accuracy_m"]["filtered"]
         .as_f64()
         .is_some_and(f64::is_finite));
+    // The filter curve starts at the unfiltered merged map and keeps fewer points at each step; the
+    // report's charts are written beside it.
+    let curve = ev["filter_curve"].as_array().unwrap();
+    let f = |c: &serde_json::Value, k: &str| c[k].as_f64().unwrap();
+    assert_eq!(curve.len(), 6, "{curve:?}");
+    assert!(
+        (f(&curve[0], "accuracy_m") - f(&ev["unfiltered"], "accuracy_m")).abs() < 1e-6,
+        "{curve:?}"
+    );
+    assert!(curve
+        .windows(2)
+        .all(|w| f(&w[1], "kept_fraction") < f(&w[0], "kept_fraction")));
+    for png in ev["plots"].as_array().unwrap() {
+        let bytes = std::fs::read(out.join(png.as_str().unwrap())).unwrap();
+        assert!(bytes.starts_with(b"\x89PNG"), "{png}");
+    }
+    assert_eq!(ev["plots"].as_array().unwrap().len(), 2);
     // The boundary zone is part of the merged map: no more points than it.
     assert!(
         ev["boundary_filtered"]["counts"]["reconstruction_input"]
