@@ -639,9 +639,6 @@ fn main() {
     }
 }
 
-/// The transforms.json a command named (a dataset folder means the one inside it). Plain files only:
-/// these commands write paths relative to it or read poses, so the archives `source::open` also takes
-/// are not for them.
 /// A synthetic world's ground truth of one image: `<world>/images/<rest>` → `<world>/gt/<kind>/<rest>`,
 /// wherever the transforms file naming the image lives (a poses or submap output names it
 /// `../<world>/images/...`). `None` when the path has no `images` folder or the file is not there.
@@ -654,6 +651,9 @@ pub(crate) fn synthetic_gt_file(image: &Path, kind: &str) -> Option<PathBuf> {
     file.is_file().then_some(file)
 }
 
+/// The transforms.json a command named (a dataset folder means the one inside it). Plain files only:
+/// these commands write paths relative to it or read poses, so the archives `source::open` also takes
+/// are not for them.
 pub(crate) fn transforms_file(p: &Path) -> PathBuf {
     if p.is_dir() {
         p.join("transforms.json")

@@ -704,14 +704,23 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
         }
         // Each submap's own clouds scored on what its training cameras saw (synthetic worlds only: that
         // takes each image's exact depth), so a cut is judged by how well each side reconstructs its part.
-        let to_gt = alignment.map(|a| a.to_mat4());
         let mut seen_rows = Vec::new();
+        let mut seen_note = None;
         for (k, name) in names.iter().enumerate() {
             if !m.done(k) {
                 continue;
             }
-            let Some(seen) = seen_by(&subs.join(name), to_gt.as_ref())? else {
-                break;
+            // An optional score: a problem with the exact depth is said and recorded, not fatal.
+            let seen = match seen_by(&subs.join(name), alignment.as_ref()) {
+                Ok(Some(seen)) => seen,
+                Ok(None) => break,
+                Err(e) => {
+                    let note = format!("each submap on what it saw: skipped, {e:#}");
+                    eprintln!("[reconstruct] {note}");
+                    seen_note = Some(note);
+                    seen_rows.clear();
+                    break;
+                }
             };
             let gt_idx = seen.select(&truth.cloud.positions);
             let mut entry = serde_json::json!({ "name": name, "gt_points_seen": gt_idx.len() });
@@ -731,6 +740,12 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             }
             seen_rows.push(entry);
         }
+        if let Some(note) = seen_note {
+            table.insert(
+                "per_submap_seen".into(),
+                serde_json::json!({ "note": note }),
+            );
+        }
         if !seen_rows.is_empty() {
             let mean = |key: &str, field: &dyn Fn(&serde_json::Value) -> Option<f64>| {
                 let v: Vec<f64> = seen_rows.iter().filter_map(|e| field(&e[key])).collect();
@@ -742,7 +757,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             table.insert(
                 "per_submap_seen".into(),
                 serde_json::json!({
-                    "what": "each submap's clouds against the GT its own training cameras saw (exact depth, 0.2 m voxels)",
+                    "what": format!("each submap's clouds against the GT its own training cameras saw (exact depth, {} m voxels)", silvr_core::submap::MERGE_VOXEL_M),
                     "submaps": seen_rows,
                     "mean_accuracy_m": { "unfiltered": mean("unfiltered", &acc), "filtered": mean("filtered", &acc) },
                     "mean_fscore_10cm": { "unfiltered": mean("unfiltered", &f10), "filtered": mean("filtered", &f10) },
@@ -968,8 +983,6 @@ fn local(c: &ReconstructCmd, m: &Manifest, manifest_path: &Path) -> Result<Vec<F
     Ok(failures)
 }
 
-/// `finished` of the tasks `todo` of this run are over after `t`: how many, and the time left at that
-/// pace.
 /// One point of the merged map's filter curve.
 #[derive(serde::Serialize)]
 struct CurvePoint {
@@ -988,16 +1001,20 @@ fn filter_curve(
     let Some(log_std) = merged_all.scalar("log_std_combined") else {
         return Ok(Vec::new());
     };
-    let mut order: Vec<usize> = (0..log_std.len())
-        .filter(|&i| log_std[i].is_finite())
-        .collect();
-    order.sort_by(|&a, &b| log_std[a].total_cmp(&log_std[b]));
+    // Non-finite log-std ranks as the most uncertain, so 100 % is the unfiltered map itself.
+    let rank = |i: usize| {
+        let v = log_std[i];
+        if v.is_finite() {
+            v
+        } else {
+            f32::INFINITY
+        }
+    };
+    let mut order: Vec<usize> = (0..log_std.len()).collect();
+    order.sort_by(|&a, &b| rank(a).total_cmp(&rank(b)));
     let mut curve = Vec::new();
     for kept in [1.0, 0.9, 0.8, 0.7, 0.6, 0.5] {
         let n = ((order.len() as f64 * kept).round() as usize).max(1);
-        if n > order.len() {
-            break;
-        }
         let r = truth
             .evaluate(&merged_all.select(&order[..n]), opts)?
             .report;
@@ -1090,17 +1107,16 @@ fn report_plots(
 }
 
 /// What a submap's training cameras saw, from each image's exact depth (`gt/depth`, synthetic worlds),
-/// in the GT frame (`to_gt` as the evaluation maps the clouds). `None` when an image has no exact depth.
+/// in the GT frame: each camera through `to_gt` (the Sim(3) the evaluation maps the clouds with), its
+/// metric range added there. `None` when an image has no exact depth.
 fn seen_by(
     submap_dataset: &Path,
-    to_gt: Option<&glam::DMat4>,
+    to_gt: Option<&silvr_core::geometry::Sim3>,
 ) -> Result<Option<silvr_core::eval::SeenVoxels>> {
-    /// The merge's voxel: a GT point counts as seen when an exact depth sample fell in its 0.2 m cell.
-    const VOXEL_M: f64 = 0.2;
     let json = crate::transforms_file(submap_dataset);
     let (frames, _, val) = silvr_core::dataset::read_frames(&json)?;
     let base = json.parent().unwrap_or(Path::new("."));
-    let mut seen = silvr_core::eval::SeenVoxels::new(VOXEL_M);
+    let mut seen = silvr_core::eval::SeenVoxels::new(silvr_core::submap::MERGE_VOXEL_M);
     for f in frames.iter().filter(|f| !val.contains(&f.file_path)) {
         let Some(depth) = crate::synthetic_gt_file(&base.join(&f.file_path), "depth") else {
             return Ok(None);
@@ -1117,19 +1133,18 @@ fn seen_by(
                 json.display()
             );
         }
-        // 16-bit range × 256; 0 is sky and the maximum is out of range.
         let range: Vec<f32> = px
             .iter()
-            .map(|&v| match v {
-                0 | u16::MAX => f32::NAN,
-                v => v as f32 / 256.0,
-            })
+            .map(|&v| silvr_core::lidar::images::decode_depth(v).unwrap_or(f32::NAN))
             .collect();
-        seen.add_view(&model, &pose, to_gt, &range, 1);
+        let pose = to_gt.map_or(pose, |a| a.transform_pose(&pose));
+        seen.add_view(&model, &pose, &range, 1);
     }
     Ok(Some(seen))
 }
 
+/// `finished` of the tasks `todo` of this run are over after `t`: how many, and the time left at that
+/// pace.
 fn progress(todo: &[usize], finished: usize, t: Instant) {
     if finished == 0 || finished >= todo.len() {
         return;

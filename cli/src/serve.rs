@@ -168,7 +168,9 @@ pub fn open_command(out: &Path) -> String {
     let exe = exe
         .to_str()
         .and_then(|s| s.strip_suffix(" (deleted)"))
-        .map_or(exe.clone(), PathBuf::from);
+        .map(PathBuf::from)
+        .filter(|p| p.is_file())
+        .unwrap_or(exe);
     let out = out.canonicalize().unwrap_or_else(|_| out.to_path_buf());
     format!(
         "{} serve {}",

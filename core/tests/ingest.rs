@@ -17,19 +17,19 @@ use silvr_core::ingest::ros::{
     PointTimeKind, PoseStamped, RegionOfInterest, RosMessage, TfMessage, Time, TransformStamped,
 };
 
-/// `../shared/data` beside the workspace root, or `None` (with a line saying so).
-fn shared_data(what: &str) -> Option<PathBuf> {
+/// `../shared/data` beside the workspace root when `rel` is inside it, or `None` (with a line saying so).
+/// With `SILVR_REQUIRE_DATA=1` (CI, where `../shared/data` is mounted) an absent `rel` fails instead.
+fn shared_data(what: &str, rel: &str) -> Option<PathBuf> {
     let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
-    if p.is_dir() {
+    if p.join(rel).exists() {
         return Some(p);
     }
-    // CI sets it when `../shared/data` is there: then a skip would hide a broken path.
     assert!(
-        std::env::var_os("SILVR_REQUIRE_DATA").is_none(),
-        "{what}: {} is absent and SILVR_REQUIRE_DATA is set",
-        p.display()
+        std::env::var("SILVR_REQUIRE_DATA").as_deref() != Ok("1"),
+        "{what}: {} is absent and SILVR_REQUIRE_DATA=1",
+        p.join(rel).display()
     );
-    println!("skipping {what}: {} is absent", p.display());
+    println!("skipping {what}: {} is absent", p.join(rel).display());
     None
 }
 
@@ -56,7 +56,7 @@ fn close(a: f64, b: f64, tol: f64) -> bool {
 
 #[test]
 fn shared_mcaps_read_and_known_types_decode() {
-    let Some(data) = shared_data("shared MCAP fixtures") else {
+    let Some(data) = shared_data("shared MCAP fixtures", "formats/mcap") else {
         return;
     };
     let dir = data.join("formats/mcap");
@@ -126,7 +126,10 @@ fn shared_mcaps_read_and_known_types_decode() {
 /// `../shared/data/formats/mcap/nav2_turtlebot.mcap`.
 #[test]
 fn nav2_turtlebot_matches_python_decoder() {
-    let Some(data) = shared_data("nav2_turtlebot cross-check") else {
+    let Some(data) = shared_data(
+        "nav2_turtlebot cross-check",
+        "formats/mcap/nav2_turtlebot.mcap",
+    ) else {
         return;
     };
     let path = data.join("formats/mcap/nav2_turtlebot.mcap");
@@ -776,7 +779,7 @@ fn a_bad_payload_in_a_good_bag_is_counted_with_context() {
 
 #[test]
 fn shared_pcd_scan_reads() {
-    let Some(data) = shared_data("shared PCD scan") else {
+    let Some(data) = shared_data("shared PCD scan", "formats/pcd_camera_pair/0.pcd") else {
         return;
     };
     let pcd = read_pcd(&data.join("formats/pcd_camera_pair/0.pcd")).unwrap();
@@ -1245,7 +1248,7 @@ fn broken_bags_and_rig_files_fail_cleanly_without_a_dataset() {
 
 #[test]
 fn dgp_scene_becomes_a_dataset_whose_depth_agrees_with_an_independent_projection() {
-    let Some(data) = shared_data("the DGP scene import") else {
+    let Some(data) = shared_data("the DGP scene import", "real/dgp_scene_02") else {
         return;
     };
     let Some(gpu) = common::gpu() else { return };

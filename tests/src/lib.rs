@@ -51,7 +51,7 @@ pub fn workspace_root() -> PathBuf {
 }
 
 /// `../shared/data/<rel>` beside the repository, where third-party test data lives, or `None` with a line
-/// saying the test skips. With `SILVR_REQUIRE_DATA` set (CI sets it when `../shared/data` is there) an
+/// saying the test skips. With `SILVR_REQUIRE_DATA=1` (CI sets it when `../shared/data` is there) an
 /// absent file is a failure instead, so a test cannot pass by skipping silently.
 pub fn shared_data(rel: &str) -> Option<PathBuf> {
     let p = workspace_root().join("../shared/data").join(rel);
@@ -59,8 +59,8 @@ pub fn shared_data(rel: &str) -> Option<PathBuf> {
         return Some(p);
     }
     assert!(
-        std::env::var_os("SILVR_REQUIRE_DATA").is_none(),
-        "{} is absent and SILVR_REQUIRE_DATA is set",
+        std::env::var("SILVR_REQUIRE_DATA").as_deref() != Ok("1"),
+        "{} is absent and SILVR_REQUIRE_DATA=1",
         p.display()
     );
     eprintln!("skipping: {} absent", p.display());
@@ -69,8 +69,9 @@ pub fn shared_data(rel: &str) -> Option<PathBuf> {
 
 #[cfg(test)]
 mod tests {
-    /// Absent data skips, unless SILVR_REQUIRE_DATA asks for it; present data is found either way. (The
-    /// only test in this crate's unit tests, so setting the variable races with nothing.)
+    /// Absent data skips, unless SILVR_REQUIRE_DATA=1 asks for it (then the panic names the path; the
+    /// default panic hook prints it to the log). The only test in this crate's unit tests, so setting the
+    /// variable races with nothing.
     #[test]
     fn shared_data_skips_or_fails_when_absent() {
         std::env::remove_var("SILVR_REQUIRE_DATA");

@@ -5,7 +5,7 @@
 
 use crate::camera::CameraModel;
 use crate::geometry::Se3;
-use glam::{DMat4, DVec2, DVec3};
+use glam::{DVec2, DVec3};
 use std::collections::HashSet;
 
 /// Voxels (of side `voxel` m) that some camera's exact depth reached.
@@ -39,16 +39,15 @@ impl SeenVoxels {
         self.keys.is_empty()
     }
 
-    /// Adds the surface one view sees: `range_m` is the exact Euclidean range per pixel (row-major,
-    /// `model.width × model.height`; non-finite or ≤ 0 where nothing was hit, e.g. sky), `t_world_cam` the
-    /// view's OpenCV-axes pose, and `to_gt` (if any) maps the world frame into the GT's, as the evaluation
-    /// maps the reconstruction. Every `stride`-th pixel in each direction is used. Returns how many pixels
-    /// were added.
+    /// Adds the surface one view sees: `range_m` is the exact Euclidean range in metres per pixel (row-major,
+    /// `model.width × model.height`; non-finite or ≤ 0 where nothing was hit, e.g. sky) and `t_gt_cam` the
+    /// view's OpenCV-axes pose in the GT frame (a pose estimated in another frame goes through that frame's
+    /// Sim(3) first: its rotation and centre, not its scale, since the range is metric). Every `stride`-th
+    /// pixel in each direction is used. Returns how many pixels were added.
     pub fn add_view(
         &mut self,
         model: &CameraModel,
-        t_world_cam: &Se3,
-        to_gt: Option<&DMat4>,
+        t_gt_cam: &Se3,
         range_m: &[f32],
         stride: u32,
     ) -> usize {
@@ -69,10 +68,7 @@ impl SeenVoxels {
                 else {
                     continue;
                 };
-                let mut p = t_world_cam.transform_point(d.normalize() * r);
-                if let Some(m) = to_gt {
-                    p = m.transform_point3(p);
-                }
+                let p = t_gt_cam.transform_point(d.normalize() * r);
                 if p.is_finite() {
                     self.keys.insert(self.key(p));
                     added += 1;
@@ -89,14 +85,15 @@ impl SeenVoxels {
     pub fn select(&self, points: &[DVec3]) -> Vec<usize> {
         let d = 0.25 * self.voxel;
         let seen = |p: DVec3| {
-            (0..8).any(|c: u32| {
-                let o = DVec3::new(
-                    if c & 1 == 0 { -d } else { d },
-                    if c & 2 == 0 { -d } else { d },
-                    if c & 4 == 0 { -d } else { d },
-                );
-                self.keys.contains(&self.key(p + o))
-            })
+            p.is_finite()
+                && (0..8).any(|c: u32| {
+                    let o = DVec3::new(
+                        if c & 1 == 0 { -d } else { d },
+                        if c & 2 == 0 { -d } else { d },
+                        if c & 4 == 0 { -d } else { d },
+                    );
+                    self.keys.contains(&self.key(p + o))
+                })
         };
         (0..points.len()).filter(|&i| seen(points[i])).collect()
     }
@@ -139,7 +136,7 @@ mod tests {
             }
         }
         let mut seen = SeenVoxels::new(0.25);
-        let added = seen.add_view(&model, &pose, None, &range, 1);
+        let added = seen.add_view(&model, &pose, &range, 1);
         assert_eq!(added, 40 * 40 - 1, "the NaN pixel is skipped");
         let gt = [
             DVec3::new(0.1, 0.1, 0.25 - 1e-9),  // floor under the camera
@@ -148,19 +145,20 @@ mod tests {
             DVec3::new(1.6, 1.6, 1.25 - 1e-9),  // the box's top
             DVec3::new(1.6, 1.6, 0.25),         // floor under the box: hidden
             DVec3::new(0.1, 0.1, -3.0),         // under the floor
+            DVec3::new(f64::NAN, 0.0, 0.0),     // not a point
         ];
         assert_eq!(seen.select(&gt), vec![0, 1, 3]);
-        // A transform into the GT frame moves what is seen with it.
-        let shift = DMat4::from_translation(DVec3::new(100.0, 0.0, 0.0));
+        // The same view from a pose moved into another frame sees the moved surface.
+        let shift = Se3::new(DQuat::IDENTITY, DVec3::new(100.0, 0.0, 0.0));
         let mut moved = SeenVoxels::new(0.25);
-        moved.add_view(&model, &pose, Some(&shift), &range, 1);
+        moved.add_view(&model, &(shift * pose), &range, 1);
         let gt_moved: Vec<DVec3> = gt.iter().map(|p| *p + DVec3::X * 100.0).collect();
         assert_eq!(moved.select(&gt_moved), vec![0, 1, 3]);
         assert_eq!(moved.len(), seen.len());
         let mut sparse = SeenVoxels::new(0.25);
-        assert_eq!(sparse.add_view(&model, &pose, None, &range, 2), 20 * 20 - 1);
+        assert_eq!(sparse.add_view(&model, &pose, &range, 2), 20 * 20 - 1);
         assert!(sparse.len() < seen.len(), "stride 2 reaches fewer voxels");
         // A range image of the wrong size adds nothing.
-        assert_eq!(moved.add_view(&model, &pose, None, &range[1..], 1), 0);
+        assert_eq!(moved.add_view(&model, &pose, &range[1..], 1), 0);
     }
 }
