@@ -403,6 +403,10 @@ struct UncertaintyCmd {
     /// Time every GPU pass of the WGSL uncertainty pass and print time and bound bytes per pass.
     #[arg(long)]
     profile: bool,
+    /// `points_filtered.ply` keeps the points whose σ (metres) is at most this, instead of the default
+    /// rule (Tukey's fence on log σ).
+    #[arg(long, value_name = "METRES")]
+    max_sigma: Option<f64>,
 }
 
 fn uncertainty_cmd(c: UncertaintyCmd) -> Result<()> {
@@ -411,9 +415,15 @@ fn uncertainty_cmd(c: UncertaintyCmd) -> Result<()> {
         batches: c.batches,
         rays_per_batch: c.rays,
         seed: c.seed,
+        max_sigma_m: c.max_sigma,
         ..Default::default()
     };
-    let trained_on = c.dataset.clone();
+    config.validate()?;
+    // The GT folder is only the reference: the field's own dataset places the per-label read-out.
+    let trained_on = match &c.dataset {
+        Some(d) => d.clone(),
+        None => uncertainty::dataset_of(&c.model)?,
+    };
     let summary = uncertainty::run(&uncertainty::UncertaintyArgs {
         model_dir: c.model.clone(),
         dataset: c.dataset,
@@ -426,7 +436,7 @@ fn uncertainty_cmd(c: UncertaintyCmd) -> Result<()> {
         let v = uncertainty::evaluate(
             &c.model,
             &gt,
-            trained_on.as_deref().unwrap_or(&gt),
+            &trained_on,
             &GeometryOptions::default(),
             &summary,
         )?;

@@ -683,6 +683,25 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             rows.push((key.to_string(), ev.clone()));
             table.insert(key.to_string(), serde_json::to_value(&ev)?);
         }
+        // σ against the error over the merged map: each point's calibrated read-out (its submap's) and
+        // the raw Laplace one, from that submap's uncertainty.bin.
+        let fishers: Vec<Option<silvr_core::uncertainty::Fisher>> = names
+            .iter()
+            .map(|n| {
+                let p = m.dir(n).join("uncertainty.bin");
+                let bytes = std::fs::read(&p).ok()?;
+                silvr_core::uncertainty::Fisher::from_bytes(&bytes, &p.display().to_string()).ok()
+            })
+            .collect();
+        if let Some(first) = fishers.iter().flatten().next() {
+            let at = silvr_core::uncertainty::unconstrained_log_std(first.prior_sigma_m());
+            let mut with_raw = merged_all.clone();
+            crate::uncertainty::add_raw_fields(&mut with_raw, |s| fishers.get(s)?.as_ref());
+            let ev = truth.evaluate(&with_raw, &opts)?;
+            let rel =
+                crate::uncertainty::reliability_block(&out, &ev.reconstruction, &ev.rec_to_gt, at)?;
+            table.insert("reliability".into(), rel);
+        }
         // The boundary zone of each merged map scored on its own: points near the bisector of two
         // submaps' cameras, where a cut shows as a seam.
         let cameras: Vec<Vec<glam::DVec3>> = names

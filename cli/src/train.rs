@@ -185,11 +185,8 @@ pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
         if s.points.is_some() {
             eprintln!("exported {} points from {} rays", s.exported, a.export_rays);
         }
-        if let Some(u) = &s.uncertainty {
-            eprintln!(
-                "uncertainty: {} rays ({} lidar) in {:.1} s; kept {}/{} points (log10 std ≤ {:.2})",
-                u.rays, u.lidar_rays, u.seconds, u.kept, u.total, u.threshold
-            );
+        if let (Some(u), Some(cfg)) = (&s.uncertainty, &a.uncertainty) {
+            crate::uncertainty::print_summary(u, cfg);
         }
     }
     if !a.quiet && s.heldout.is_empty() && !job.trainer.data.val.is_empty() {

@@ -11,9 +11,10 @@ use silvr_core::pointcloud::{read_ply, write_ply, PointCloud};
 use silvr_core::train::checkpoint::Checkpoint;
 use silvr_core::train::data::{LoadOptions, TrainData};
 use silvr_core::train::Trainer;
-use silvr_core::uncertainty::{self, sparsify, Fisher, Modality, UncertaintyConfig};
+use silvr_core::uncertainty::reliability::{self, format_metres, Reliability};
+use silvr_core::uncertainty::{self, sparsify, Fisher, Modality, Posterior, UncertaintyConfig};
 
-/// The PLY fields the read-out writes (log10 posterior std, metres).
+/// The PLY fields the read-out writes (log10 σ in metres; DATASET.md).
 pub const FIELDS: [(&str, Modality); 3] = [
     ("log_std_colour", Modality::Colour),
     ("log_std_depth", Modality::Depth),
@@ -88,7 +89,8 @@ pub fn run(a: &UncertaintyArgs) -> Result<UncertaintySummary> {
     Ok(out)
 }
 
-fn dataset_of(dir: &Path) -> Result<PathBuf> {
+/// The dataset a `silvr train` run names in its `train.json`.
+pub fn dataset_of(dir: &Path) -> Result<PathBuf> {
     let p = dir.join("train.json");
     let text = std::fs::read_to_string(&p)
         .with_context(|| format!("reading {} (or pass --dataset)", p.display()))?;
@@ -115,6 +117,83 @@ impl UncertaintySummary {
             lidar_rays: u.lidar_rays,
         }
     }
+}
+
+/// What σ means, in one sentence (the CLI's print and the report's uncertainty section).
+pub const SIGMA_MEANS: &str = "σ is the posterior standard deviation, in metres, of where the field puts a \
+     surface point: the Laplace posterior of a perturbation field given every pixel and lidar return \
+     trained on, scaled by one factor per read-out so that 1σ covers 68 % of lidar returns held out of \
+     training";
+
+/// What the pass did, in metres: the rays it sampled and the observations the posterior stands for, the
+/// calibration, and the filter (`silvr uncertainty` and `silvr train` print the same).
+pub fn print_summary(u: &job::UncertaintySummary, config: &UncertaintyConfig) {
+    eprintln!(
+        "uncertainty: {} × {} sampled rays of each kind, the posterior over {} pixels and {} lidar \
+         returns, in {:.1} s",
+        config.batches, config.rays_per_batch, u.rays, u.lidar_rays, u.seconds
+    );
+    eprintln!(
+        "uncertainty: {}",
+        calibration_line(&u.calibration, u.prior_sigma_m)
+    );
+    if let Some(h) = &u.held_out_check {
+        for (post, rows) in [("raw", &h.raw), ("calibrated", &h.calibrated)] {
+            if let Some(Some(r)) = rows.last() {
+                eprintln!(
+                    "uncertainty: on {} held-out lidar returns not fitted on, combined σ ({post}): median \
+                     {} against a median residual of {}; {:.1} % within 1σ, {:.1} % within 2σ",
+                    h.returns,
+                    format_metres(r.median_sigma_m),
+                    format_metres(r.median_error_m),
+                    100.0 * r.coverage_1sigma,
+                    100.0 * r.coverage_2sigma
+                );
+            }
+        }
+    }
+    if u.annotated {
+        eprintln!(
+            "uncertainty: kept {}/{} points (σ ≤ {}{}); {} unconstrained (σ near the prior)",
+            u.kept,
+            u.total,
+            format_metres(10f64.powf(u.threshold as f64)),
+            if config.max_sigma_m.is_some() {
+                ", --max-sigma"
+            } else {
+                ", Tukey's fence"
+            },
+            u.unconstrained
+        );
+    }
+}
+
+/// The run's calibration as printed: each read-out's factor and the coverage it reached.
+pub fn calibration_line(c: &uncertainty::Calibration, prior_sigma_m: f64) -> String {
+    if !c.is_calibrated() {
+        return format!(
+            "σ is the raw Laplace posterior (no held-out lidar returns to calibrate it on); prior σ {}",
+            format_metres(prior_sigma_m)
+        );
+    }
+    let parts: Vec<String> = Modality::ALL
+        .iter()
+        .enumerate()
+        .map(|(i, m)| {
+            format!(
+                "{} ×{:.3e} ({:.1} % within 1σ)",
+                m.name(),
+                c.factor[i],
+                100.0 * c.coverage[i]
+            )
+        })
+        .collect();
+    format!(
+        "σ calibrated on {} held-out lidar returns: {}; prior σ {}",
+        c.returns,
+        parts.join(", "),
+        format_metres(prior_sigma_m)
+    )
 }
 
 /// Runs the pass on a live trainer and writes into `dir`: `uncertainty.bin` (the Fisher diagonals),
@@ -161,10 +240,7 @@ pub fn annotate(
         write_ply_atomic(&points_path, c)?;
     }
     if !quiet {
-        eprintln!(
-            "uncertainty: {} rays ({} lidar) in {:.1} s; kept {}/{} points (log10 std ≤ {:.2})",
-            u.rays, u.lidar_rays, u.seconds, u.kept, u.total, u.threshold
-        );
+        print_summary(&u, config);
     }
     Ok(UncertaintySummary::from_job(&u, dir))
 }
@@ -186,7 +262,17 @@ pub fn evaluate(
         .as_ref()
         .context("the uncertainty pass found no points.ply to evaluate")?;
     let opts = opts.clone();
-    let ev = eval::evaluate_files_full(points, gt_dir, &opts)?;
+    let fisher = Fisher::from_bytes(
+        &std::fs::read(&summary.fisher_path)
+            .with_context(|| format!("reading {}", summary.fisher_path.display()))?,
+        &summary.fisher_path.display().to_string(),
+    )?;
+    // The raw Laplace read-out beside the calibrated one the file holds (in memory only), so both are
+    // scored on the same evaluated points.
+    let mut cloud = read_ply(points)?;
+    add_raw_fields(&mut cloud, |_| Some(&fisher));
+    let truth = eval::GroundTruth::load(gt_dir)?;
+    let ev = truth.evaluate(&cloud, &opts)?;
     let errors = &ev.rec_to_gt;
     let mut curves = serde_json::Map::new();
     let mut series_data = Vec::new();
@@ -262,11 +348,13 @@ pub fn evaluate(
         }
         out["filtered"] = g;
     }
-    let fisher = Fisher::from_bytes(
-        &std::fs::read(&summary.fisher_path)
-            .with_context(|| format!("reading {}", summary.fisher_path.display()))?,
-        &summary.fisher_path.display().to_string(),
-    )?;
+    let at = uncertainty::unconstrained_log_std(fisher.prior_sigma_m());
+    let surface = truth.surface_distances(&ev.reconstruction.positions);
+    let rel = reliability_block(dir, &ev.reconstruction, &surface, at)?;
+    out["reliability"] = rel;
+    out["sigma_means"] = SIGMA_MEANS.into();
+    out["calibration"] = serde_json::to_value(&fisher.calibration)?;
+    out["prior_sigma_m"] = fisher.prior_sigma_m().into();
     if let Some(v) = by_label(trained_on, &fisher)? {
         out["by_label"] = v;
     }
@@ -275,11 +363,123 @@ pub fn evaluate(
     out["rays"] = summary.rays.into();
     out["lidar_rays"] = summary.lidar_rays.into();
     out["plots"] = serde_json::json!([
+        "reliability.png",
         "sparsification.png",
         "error_vs_colour.png",
         "error_vs_depth.png",
         "error_vs_combined.png"
     ]);
+    Ok(out)
+}
+
+/// The in-memory field of a raw read-out (`raw_log_std_*`).
+fn raw_field(m: Modality) -> String {
+    format!("raw_{}", m.field())
+}
+
+/// Adds the raw Laplace read-out (`raw_log_std_*`, in memory only) beside the calibrated fields of a
+/// cloud: each point read from `fisher_of(its submap id)` (0 without a `submap` field); points whose
+/// Fisher is missing get NaN.
+pub fn add_raw_fields<'a>(cloud: &mut PointCloud, fisher_of: impl Fn(usize) -> Option<&'a Fisher>) {
+    let n = cloud.len();
+    let submap: Vec<usize> = match cloud.scalar("submap") {
+        Some(s) => s.iter().map(|&v| v.max(0.0) as usize).collect(),
+        None => vec![0; n],
+    };
+    let mut raw: Vec<Vec<f32>> = vec![vec![f32::NAN; n]; 3];
+    let mut ids = submap.clone();
+    ids.sort_unstable();
+    ids.dedup();
+    for id in ids {
+        let Some(f) = fisher_of(id) else { continue };
+        let idx: Vec<usize> = (0..n).filter(|&i| submap[i] == id).collect();
+        let pts: Vec<glam::DVec3> = idx.iter().map(|&i| cloud.positions[i]).collect();
+        let u = f.read_out_metric(Posterior::Raw, &pts);
+        for (k, m) in Modality::ALL.iter().enumerate() {
+            for (j, &i) in idx.iter().enumerate() {
+                raw[k][i] = u.of(*m)[j];
+            }
+        }
+    }
+    for (m, v) in Modality::ALL.iter().zip(raw) {
+        cloud.set_scalar(&raw_field(*m), v);
+    }
+}
+
+/// The reliability of every read-out, raw and calibrated, on the evaluated points (`cloud` carries
+/// both as fields — [`add_raw_fields`] —, `errors` their distances to the GT; `at` the log-std from which a
+/// point is unconstrained): printed as tables, written as `reliability.json` and charted in
+/// `reliability.png` in `dir`; returns the JSON.
+pub fn reliability_block(
+    dir: &Path,
+    cloud: &PointCloud,
+    errors: &[f64],
+    at: f32,
+) -> Result<serde_json::Value> {
+    let mut out = serde_json::json!({
+        "error": "distance to the ground-truth surface (m): to the plane of the 8 nearest GT samples where they are planar, else to the nearest",
+        "sigma_means": SIGMA_MEANS,
+        "unconstrained_log_std": at,
+    });
+    let mut lines: Vec<(String, Vec<f64>, Vec<f64>)> = Vec::new();
+    for m in Modality::ALL {
+        for (post, field) in [("raw", raw_field(m)), ("calibrated", m.field().to_string())] {
+            let Some(ls) = cloud.scalar(&field) else {
+                continue;
+            };
+            let Some(r) = reliability::reliability(ls, errors, at, 10) else {
+                continue;
+            };
+            eprint!(
+                "{}",
+                r.table(&format!("reliability, {} σ ({post})", m.name()))
+            );
+            if m == Modality::Combined || post == "calibrated" {
+                lines.push((
+                    format!("{} {post}", m.name()),
+                    r.bins.iter().map(|b| b.rms_sigma_m.log10()).collect(),
+                    r.bins.iter().map(|b| b.rms_error_m.log10()).collect(),
+                ));
+            }
+            out[post][m.name()] = serde_json::to_value::<&Reliability>(&r)?;
+        }
+    }
+    // The reliability diagram: RMS error against RMS σ per bin, log-log, with the identity line.
+    let (lo, hi) = lines
+        .iter()
+        .flat_map(|(_, x, y)| x.iter().chain(y))
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
+    if lo.is_finite() && hi > lo {
+        let ident = [lo, hi];
+        let mut series = vec![plot::Series {
+            name: "identity",
+            x: &ident,
+            y: &ident,
+            colour: plot::PALETTE[0],
+        }];
+        for (k, (name, x, y)) in lines.iter().enumerate() {
+            series.push(plot::Series {
+                name,
+                x,
+                y,
+                colour: plot::PALETTE[1 + k % (plot::PALETTE.len() - 1)],
+            });
+        }
+        let img = plot::line_chart(
+            "reliability: RMS error vs predicted σ per decile of σ",
+            "log10 RMS predicted σ (m)",
+            "log10 RMS error (m)",
+            &series,
+        );
+        write(&dir.join("reliability.png"), &plot::png_bytes(&img))?;
+    }
+    write(
+        &dir.join("reliability.json"),
+        serde_json::to_string_pretty(&out)?.as_bytes(),
+    )?;
     Ok(out)
 }
 
@@ -368,7 +568,7 @@ pub fn by_label(dataset: &Path, fisher: &Fisher) -> Result<Option<serde_json::Va
         if pts.is_empty() {
             continue;
         }
-        let u = uncertainty::read_out(fisher, pts, data.frame.scale);
+        let u = read_scene(fisher, pts);
         let mut entry = summary(&u, &|_| true);
         let bands = &band_of[l as usize];
         for (b, name) in RANGE_BAND_NAMES.iter().enumerate() {
@@ -378,10 +578,20 @@ pub fn by_label(dataset: &Path, fisher: &Fisher) -> Result<Option<serde_json::Va
         }
         out[l.name()] = entry;
     }
-    let u = uncertainty::read_out(fisher, &under, data.frame.scale);
+    let u = read_scene(fisher, &under);
     out["under_road_5m"] = summary(&u, &|_| true);
-    out["prior"] = (fisher.prior_log_std() as f64 - data.frame.scale.log10()).into();
+    out["prior"] = fisher.prior_sigma_m().log10().into();
     Ok(Some(out))
+}
+
+/// The calibrated read-outs at scene-frame points.
+fn read_scene(fisher: &Fisher, pts: &[[f32; 3]]) -> uncertainty::PointUncertainty {
+    let r = |m| fisher.read_out_scene(m, Posterior::Calibrated, pts);
+    uncertainty::PointUncertainty {
+        colour: r(Modality::Colour),
+        depth: r(Modality::Depth),
+        combined: r(Modality::Combined),
+    }
 }
 
 /// Upper edges (metres) of the range bands of [`by_label`]; the last band is open.

@@ -169,7 +169,7 @@ pub struct FinishOptions {
 #[derive(Clone, Debug, Serialize)]
 pub struct UncertaintySummary {
     pub seconds: f64,
-    /// The default threshold on `log_std_combined` (Tukey's fence), and the points it keeps.
+    /// The threshold on `log_std_combined` (Tukey's fence, or `max_sigma_m`), and the points it keeps.
     pub threshold: f32,
     pub kept: usize,
     pub total: usize,
@@ -177,6 +177,28 @@ pub struct UncertaintySummary {
     pub lidar_rays: u64,
     /// Whether `points.ply` was annotated (and `points_filtered.ply` written).
     pub annotated: bool,
+    /// The calibration on held-out lidar returns (factors per read-out: colour, depth, combined; `returns`
+    /// 0 when there were none and the read-out is the raw Laplace σ).
+    pub calibration: uncertainty::Calibration,
+    /// Held-out returns the dataset has (the calibration renders up to the config's number of them).
+    pub held_out_returns: usize,
+    /// σ against the held-out returns the factors were not fitted on (every other one): per read-out
+    /// (colour, depth, combined), raw and calibrated; each residual against √(σ² + lidar noise²). The
+    /// check that needs no ground truth.
+    pub held_out_check: Option<HeldOutCheck>,
+    /// The prior's σ (metres) and the log-std from which a point counts as unconstrained.
+    pub prior_sigma_m: f64,
+    pub unconstrained_log_std: f32,
+    /// Points of the cloud that read the prior (unconstrained).
+    pub unconstrained: usize,
+}
+
+/// The read-outs on held-out lidar returns the calibration did not see.
+#[derive(Clone, Debug, Serialize)]
+pub struct HeldOutCheck {
+    pub returns: usize,
+    pub raw: Vec<Option<uncertainty::reliability::Reliability>>,
+    pub calibrated: Vec<Option<uncertainty::reliability::Reliability>>,
 }
 
 /// What a finished run measured (also written as `train.json`).
@@ -477,7 +499,7 @@ pub async fn uncertainty_pass(
     observer: Observer,
 ) -> Result<UncertaintySummary, JobError> {
     let t0 = Instant::now();
-    let fisher = uncertainty::compute_fisher(trainer, config, |done, total| {
+    let mut fisher = uncertainty::compute_fisher(trainer, config, |done, total| {
         (observer.borrow_mut())(Progress {
             stage: "uncertainty",
             done,
@@ -486,9 +508,33 @@ pub async fn uncertainty_pass(
         })
     })
     .await?;
+    // One factor per read-out, fitted on lidar returns training held out (never on ground truth).
+    let held = if config.calibration_returns > 0 {
+        uncertainty::calibrate::held_out_returns(trainer, config.calibration_returns, config.seed)
+            .await?
+    } else {
+        Default::default()
+    };
+    // Fitted on every other return, checked on the rest.
+    let (fit, check) = held.split();
+    uncertainty::calibrate::calibrate(&mut fisher, &fit);
+    let held_out_check = (!check.residual_m.is_empty()).then(|| {
+        let table = |post| {
+            uncertainty::Modality::ALL
+                .iter()
+                .map(|&m| uncertainty::calibrate::held_out_reliability(&fisher, m, post, &check))
+                .collect()
+        };
+        HeldOutCheck {
+            returns: check.residual_m.len(),
+            raw: table(uncertainty::Posterior::Raw),
+            calibrated: table(uncertainty::Posterior::Calibrated),
+        }
+    });
     let seconds = t0.elapsed().as_secs_f64();
     sink.put("uncertainty.bin", &fisher.to_bytes())?;
-    let frame = trainer.data.frame;
+    let prior_sigma_m = fisher.prior_sigma_m();
+    let unconstrained_log_std = uncertainty::unconstrained_log_std(prior_sigma_m);
     let mut s = UncertaintySummary {
         seconds,
         threshold: f32::INFINITY,
@@ -497,11 +543,21 @@ pub async fn uncertainty_pass(
         rays: fisher.rays,
         lidar_rays: fisher.lidar_rays,
         annotated: false,
+        calibration: fisher.calibration.clone(),
+        held_out_returns: held.available,
+        held_out_check,
+        prior_sigma_m,
+        unconstrained_log_std,
+        unconstrained: 0,
     };
     if let Some(cloud) = cloud {
-        uncertainty::annotate_cloud(&fisher, &frame, cloud);
+        uncertainty::annotate_cloud(&fisher, cloud);
         let comb = cloud.scalar("log_std_combined").unwrap_or(&[]).to_vec();
-        s.threshold = filter::default_threshold(&comb);
+        s.unconstrained = comb.iter().filter(|&&v| v >= unconstrained_log_std).count();
+        s.threshold = match config.max_sigma_m {
+            Some(m) => m.log10() as f32,
+            None => filter::default_threshold(&comb),
+        };
         let kept = filter::filter_cloud(cloud, "log_std_combined", s.threshold);
         s.kept = kept.len();
         s.total = cloud.len();
@@ -537,13 +593,17 @@ pub async fn uncertainty_image(
             [0, 1, 2].map(|k| r.origin[k] + r.dir[k] * t)
         })
         .collect();
-    let u = uncertainty::read_out(fisher, &pts, trainer.data.frame.scale).combined;
+    let u = fisher.read_out_scene(
+        uncertainty::Modality::Combined,
+        uncertainty::Posterior::Calibrated,
+        &pts,
+    );
     let lo = u
         .iter()
         .cloned()
         .filter(|x| x.is_finite())
         .fold(f32::INFINITY, f32::min);
-    let hi = fisher.prior_log_std() - (trainer.data.frame.scale.log10() as f32);
+    let hi = fisher.prior_sigma_m().log10() as f32;
     let px: Vec<u8> = (0..(v.width * v.height) as usize)
         .map(|k| {
             if !v.valid[k] {

@@ -36,7 +36,7 @@ use silvr_core::train::checkpoint::Checkpoint;
 use silvr_core::train::data::{LoadOptions, TrainData};
 use silvr_core::train::export::ExportDepth;
 use silvr_core::train::{Backend, Mode, TrainConfig, Trainer};
-use silvr_core::uncertainty::{self, sparsify, UncertaintyConfig};
+use silvr_core::uncertainty::{self, reliability, sparsify, Posterior, UncertaintyConfig};
 
 const STEPS: u32 = 200;
 const RAYS: usize = 512;
@@ -238,15 +238,9 @@ fn wgsl_training_matches_the_cpu_reference_over_a_run() {
         assert!(worst < 2e-3, "Fisher {what}: {worst}");
     }
     // AUSE of the CPU cloud by each engine's read-out.
-    let frame = cpu.data.frame;
-    let scene: Vec<[f32; 3]> = ev_c
-        .reconstruction
-        .positions
-        .iter()
-        .map(|&p| frame.to_scene(p).as_vec3().to_array())
-        .collect();
-    let ug = uncertainty::read_out(&fg, &scene, frame.scale);
-    let uc = uncertainty::read_out(&fc, &scene, frame.scale);
+    let pts = &ev_c.reconstruction.positions;
+    let ug = fg.read_out_metric(Posterior::Raw, pts);
+    let uc = fc.read_out_metric(Posterior::Raw, pts);
     let ause = |u: &[f32]| {
         sparsify::sparsification(&ev_c.rec_to_gt, u)
             .expect("points")
@@ -255,6 +249,71 @@ fn wgsl_training_matches_the_cpu_reference_over_a_run() {
     let (a_g, a_c) = (ause(&ug.combined), ause(&uc.combined));
     eprintln!("AUSE combined: wgsl {a_g:.4}, cpu {a_c:.4}");
     assert!((a_g - a_c).abs() <= 0.01, "AUSE wgsl {a_g} vs cpu {a_c}");
+
+    // σ in metres that matches the error: calibrated on held-out lidar returns (WGSL renders them),
+    // never on the ground truth, the read-out of the CPU cloud against its distance to the GT.
+    let mut f = fg.clone();
+    let held = pollster::block_on(uncertainty::calibrate::held_out_returns(
+        &mut on_wgsl,
+        uncertainty::CALIBRATION_RETURNS,
+        7,
+    ))
+    .unwrap();
+    uncertainty::calibrate::calibrate(&mut f, &held);
+    eprintln!(
+        "calibration on {} of {} held-out returns: factors {:?}, coverage {:?}",
+        held.residual_m.len(),
+        held.available,
+        f.calibration.factor,
+        f.calibration.coverage
+    );
+    assert!(
+        held.residual_m.len() > 1000,
+        "{} held-out returns",
+        held.residual_m.len()
+    );
+    let at = uncertainty::unconstrained_log_std(f.prior_sigma_m());
+    // The error σ speaks of: distance to the GT surface (the micro world's GT is sampled every 5 cm, so
+    // the distance to its nearest sample has a ~2 cm floor that is not the field's).
+    let errors = &eval::GroundTruth::load(dataset)
+        .unwrap()
+        .surface_distances(&ev_c.reconstruction.positions);
+    let cal = f.read_out_metric(Posterior::Calibrated, pts).combined;
+    let r = reliability::reliability(&cal, errors, at, 10).unwrap();
+    eprint!("{}", r.table("micro world, combined σ (calibrated)"));
+    assert!(
+        (0.5..=2.0).contains(&r.median_ratio),
+        "median σ {} m vs median error {} m",
+        r.median_sigma_m,
+        r.median_error_m
+    );
+    assert!(
+        (0.6..=0.8).contains(&r.coverage_1sigma),
+        "1σ coverage {}",
+        r.coverage_1sigma
+    );
+    assert!(
+        (0.85..=0.99).contains(&r.coverage_2sigma),
+        "2σ coverage {}",
+        r.coverage_2sigma
+    );
+    // BayesRays' read-out, the σ of a field constrained by one average ray (H/N, λ = 1e-4/L³), is
+    // hundreds of times the error: it fails the same bands.
+    let n = f.rays as f32;
+    let old = uncertainty::Fisher {
+        colour: f.colour.iter().map(|h| h / n).collect(),
+        depth: f.depth.iter().map(|h| h / n).collect(),
+        prior: 1e-4 / (f.cells as f64).powi(3),
+        calibration: uncertainty::Calibration::RAW,
+        ..f.clone()
+    };
+    let o = old.read_out_metric(Posterior::Raw, pts).combined;
+    let ro = reliability::reliability(&o, errors, f32::INFINITY, 10).unwrap();
+    eprint!(
+        "{}",
+        ro.table("micro world, combined σ (BayesRays' per-ray read-out)")
+    );
+    assert!(ro.median_ratio > 10.0, "{}", ro.median_ratio);
 }
 
 /// A WGSL run checkpointed halfway and resumed (a new engine on the same device) continues the run: the

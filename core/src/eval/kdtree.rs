@@ -1,4 +1,4 @@
-//! A static 3-D KD-tree for nearest-neighbour *distances*.
+//! A static 3-D KD-tree for nearest-neighbour distances (and the k nearest points, for a local plane).
 //!
 //! Why not kiddo: its mutable tree panics once more than a bucket's worth of points share a coordinate
 //! (raw reconstructions have exact duplicates), and its immutable tree slows down ~10× on clouds with many
@@ -121,6 +121,72 @@ impl KdTree {
     }
 }
 
+impl KdTree {
+    /// The `k` nearest points to `q` with their squared distances, nearest first (fewer when the tree
+    /// holds fewer). The same traversal as [`Self::nearest_sq`], pruned by the k-th best so far.
+    pub(crate) fn k_nearest(&self, q: [f64; 3], k: usize) -> Vec<(f64, [f64; 3])> {
+        let mut best: Vec<(f64, [f64; 3])> = Vec::with_capacity(k + 1);
+        if self.pts.is_empty() || k == 0 {
+            return best;
+        }
+        let worst = |b: &Vec<(f64, [f64; 3])>| {
+            if b.len() < k {
+                f64::INFINITY
+            } else {
+                b[b.len() - 1].0
+            }
+        };
+        let offer = |b: &mut Vec<(f64, [f64; 3])>, p: &[f64; 3]| {
+            let d = dist_sq(p, &q);
+            if d < worst(b) {
+                let at = b.partition_point(|e| e.0 <= d);
+                b.insert(at, (d, *p));
+                b.truncate(k);
+            }
+        };
+        let mut stack: Vec<(usize, usize, usize, [f64; 3], f64)> = Vec::with_capacity(64);
+        stack.push((0, 0, self.pts.len(), [0.0; 3], 0.0));
+        while let Some((node, lo, hi, off, bound)) = stack.pop() {
+            if bound >= worst(&best) {
+                continue;
+            }
+            match self.kind[node] {
+                KIND_LEAF => {
+                    for p in &self.pts[lo..hi] {
+                        offer(&mut best, p);
+                    }
+                }
+                KIND_SAME => {
+                    for p in &self.pts[lo..hi] {
+                        offer(&mut best, p);
+                        if best.len() >= k {
+                            break;
+                        }
+                    }
+                }
+                axis => {
+                    let a = axis as usize;
+                    let mid = lo + (hi - lo) / 2;
+                    let diff = q[a] - self.split[node];
+                    let (near, far) = if diff < 0.0 {
+                        ((2 * node + 1, lo, mid), (2 * node + 2, mid, hi))
+                    } else {
+                        ((2 * node + 2, mid, hi), (2 * node + 1, lo, mid))
+                    };
+                    let mut far_off = off;
+                    far_off[a] = diff;
+                    let far_bound = bound - off[a] * off[a] + diff * diff;
+                    if far_bound < worst(&best) {
+                        stack.push((far.0, far.1, far.2, far_off, far_bound));
+                    }
+                    stack.push((near.0, near.1, near.2, off, bound));
+                }
+            }
+        }
+        best
+    }
+}
+
 #[inline]
 fn dist_sq(p: &[f64; 3], q: &[f64; 3]) -> f64 {
     let (dx, dy, dz) = (p[0] - q[0], p[1] - q[1], p[2] - q[2]);
@@ -224,5 +290,27 @@ mod tests {
             }
         }
         assert_eq!(KdTree::new(Vec::new()).nearest_sq([0.0; 3]), f64::INFINITY);
+    }
+
+    #[test]
+    fn k_nearest_matches_brute_force() {
+        let mut r = Xoshiro256PlusPlus::seed_from_u64(12);
+        for n in [1usize, 5, 13, 200, 3000] {
+            let mut pts: Vec<[f64; 3]> = (0..n)
+                .map(|_| [r.random(), r.random(), (r.random_range(0..4) as f64) * 0.25])
+                .collect();
+            pts.extend(vec![[0.5, 0.5, 0.5]; 20]);
+            let tree = KdTree::new(pts.clone());
+            for _ in 0..100 {
+                let q = [r.random(), r.random(), r.random()];
+                let k = 8;
+                let got: Vec<f64> = tree.k_nearest(q, k).iter().map(|e| e.0).collect();
+                let mut all: Vec<f64> = pts.iter().map(|p| dist_sq(p, &q)).collect();
+                all.sort_by(f64::total_cmp);
+                all.truncate(k);
+                assert_eq!(got, all, "n = {n}");
+            }
+        }
+        assert!(KdTree::new(Vec::new()).k_nearest([0.0; 3], 4).is_empty());
     }
 }

@@ -138,6 +138,13 @@ impl GroundTruth {
         self.evaluate_against(rec, &self.cloud, options)
     }
 
+    /// Distance from each point (already in the GT's frame, e.g. an evaluation's `reconstruction`) to the
+    /// GT surface ([`metrics::NearestNeighbours::surface_distance`]): the error an uncertainty's σ speaks
+    /// of, without the GT sampling's floor.
+    pub fn surface_distances(&self, points: &[glam::DVec3]) -> Vec<f64> {
+        metrics::NearestNeighbours::new(&self.cloud.positions).surface_distances(points)
+    }
+
     /// [`Self::evaluate`] against only the GT points `gt_indices` (what one submap's cameras saw, say),
     /// with the same observed-space grid.
     pub fn evaluate_within(

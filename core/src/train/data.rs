@@ -84,6 +84,30 @@ pub struct TrainData {
     pub val: Vec<usize>,
     /// Frames listed but skipped, with why (missing image files, for instance).
     pub skipped: Vec<String>,
+    /// Standard deviation of the lidar's range noise (metres): `range_noise` of `calib/lidar.json` when
+    /// the dataset states it (the synthetic world does), else [`DEFAULT_LIDAR_RANGE_NOISE_M`]. The
+    /// uncertainty's depth noise model, and what a held-out return's residual is allowed beyond the
+    /// field's own error.
+    pub lidar_range_noise_m: f64,
+}
+
+/// Lidar range noise (1 σ, metres) assumed when a dataset does not state its own: the datasheet figure
+/// of the spinning lidars mapping rigs carry (Hesai QT64/XT32, Ouster OS0/OS1, Velodyne VLP-16: ±2–3 cm).
+pub const DEFAULT_LIDAR_RANGE_NOISE_M: f64 = 0.02;
+
+/// One lidar return in this many, chosen by a hash of (image, pixel), is held out of training: the
+/// uncertainty is calibrated on them ([`TrainData::held_out_returns`]), never on ground truth. A hash
+/// rather than a grid, so held-out returns are scattered over every surface and range.
+pub const HELD_OUT_RETURN_EVERY: u64 = 16;
+
+/// Whether pixel `pixel` of image `image` is a held-out lidar return (when it has a return at all).
+pub fn is_held_out_return(image: usize, pixel: usize) -> bool {
+    // SplitMix64's finaliser: neighbouring pixels land in unrelated buckets.
+    let mut z = ((image as u64) << 32 ^ pixel as u64).wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^= z >> 31;
+    z.is_multiple_of(HELD_OUT_RETURN_EVERY)
 }
 
 /// Options for [`TrainData::load`].
@@ -299,6 +323,7 @@ impl TrainData {
             return Err(bad(&json, "every frame is held out; nothing to train on"));
         }
         let directions = cameras.par_iter().map(direction_table).collect();
+        let lidar_range_noise_m = lidar_range_noise(src);
         Ok(TrainData {
             root,
             frame,
@@ -308,6 +333,7 @@ impl TrainData {
             train,
             val,
             skipped,
+            lidar_range_noise_m,
         })
     }
 
@@ -374,7 +400,44 @@ impl TrainData {
         Some((im.origin.as_vec3().to_array(), dw.as_vec3().to_array()))
     }
 
-    /// The supervision of pixel (x, y) of image `i`, depths in scene units.
+    /// The lidar returns held out of training ([`is_held_out_return`]) on the training images: (image,
+    /// pixel) in image order. Their depth and normal never reach a loss; the uncertainty is calibrated on
+    /// them.
+    pub fn held_out_returns(&self) -> Vec<(usize, u32)> {
+        let mut out = Vec::new();
+        for &i in &self.train {
+            for (p, &d) in self.images[i].depth.iter().enumerate() {
+                if d > 0 && d != SKY_DEPTH && is_held_out_return(i, p) {
+                    out.push((i, p as u32));
+                }
+            }
+        }
+        out
+    }
+
+    /// The lidar range of pixel `p` of image `i` in scene units, when it has a return (held out or not).
+    pub fn lidar_range(&self, i: usize, p: usize) -> Option<f32> {
+        match self.images[i].depth.get(p) {
+            Some(&d) if d > 0 && d != SKY_DEPTH => {
+                Some((d as f64 / 256.0 * self.frame.scale) as f32)
+            }
+            _ => None,
+        }
+    }
+
+    /// The lidar normal of pixel `p` of image `i` in the scene frame (unit), when it has one.
+    pub fn lidar_normal(&self, i: usize, p: usize) -> Option<DVec3> {
+        let im = &self.images[i];
+        let n = *im.normals.get(p)?;
+        if n == NO_NORMAL {
+            return None;
+        }
+        let nc = DVec3::from(n.map(|v| v as f64 / 255.0 * 2.0 - 1.0));
+        (nc.length() > 0.5).then(|| im.rotation * nc.normalize())
+    }
+
+    /// The supervision of pixel (x, y) of image `i`, depths in scene units. Held-out lidar returns
+    /// ([`is_held_out_return`]) supervise colour only.
     pub fn target(&self, i: usize, x: u32, y: u32) -> RayTarget {
         let im = &self.images[i];
         let p = (y * im.width + x) as usize;
@@ -386,23 +449,32 @@ impl TrainData {
         if let Some(&d) = im.depth.get(p) {
             if d == SKY_DEPTH {
                 t.sky = 1;
-            } else if d > 0 {
+            } else if d > 0 && !is_held_out_return(i, p) {
                 t.depth = (d as f64 / 256.0 * self.frame.scale) as f32;
             }
         }
         if im.sky.get(p).is_some_and(|&s| s > 127) && t.depth <= 0.0 {
             t.sky = 1;
         }
-        if let Some(&n) = im.normals.get(p) {
-            if n != NO_NORMAL && t.depth > 0.0 {
-                let nc = DVec3::from(n.map(|v| v as f64 / 255.0 * 2.0 - 1.0));
-                if nc.length() > 0.5 {
-                    t.normal = (im.rotation * nc.normalize()).as_vec3().to_array();
-                }
+        if t.depth > 0.0 {
+            if let Some(n) = self.lidar_normal(i, p) {
+                t.normal = n.as_vec3().to_array();
             }
         }
         t
     }
+}
+
+/// `range_noise` (metres) of the dataset's `calib/lidar.json` when it states a positive one.
+fn lidar_range_noise(src: &dyn Source) -> f64 {
+    let stated = src
+        .exists("calib/lidar.json")
+        .then(|| src.read("calib/lidar.json").ok())
+        .flatten()
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+        .and_then(|v| v["range_noise"].as_f64())
+        .filter(|s| s.is_finite() && *s > 0.0 && *s < 10.0);
+    stated.unwrap_or(DEFAULT_LIDAR_RANGE_NOISE_M)
 }
 
 type Pixels = (Vec<[u8; 3]>, Vec<u16>, Vec<[u8; 3]>, Vec<u8>, u32, u32);

@@ -1,28 +1,43 @@
 //! Epistemic uncertainty per sensor (paper §Epistemic uncertainty): BayesRays' perturbation field with a
-//! Laplace approximation, extended to lidar depth as SiLVR does.
+//! Laplace approximation, extended to lidar depth as SiLVR does, read out as a standard deviation in
+//! metres that is checked against the error.
 //!
 //! A regular grid of 3-D offsets θ over the contracted [0, 1]³ displaces the world-space sample positions
 //! of the frozen field (trilinearly); θ = 0, the grid exists only to take derivatives. For each ray the
 //! Jacobian of the rendered colour (3 channels) and, on lidar rays, of the expected depth with respect to
 //! every vertex's offset is summed over the ray's samples and then squared: the diagonal of the Fisher
-//! (Gauss–Newton) matrix, accumulated over many training rays separately for colour and depth.
-//! Var_v = 1 / (H_v / N + λ) is the posterior variance of vertex v's offset; a point's uncertainty is the
-//! log10 standard deviation interpolated from its cell's vertices (BayesRays' squared-weight rule).
+//! (Gauss–Newton) matrix, accumulated over a sample of training rays and scaled to every pixel and every
+//! lidar return the field was trained on, separately for colour and depth.
+//!
+//! The posterior of vertex v's offset given all those observations, each sensor weighted by its noise
+//! model (σ_c: the field's colour residual; σ_d: the lidar's range noise) and a prior of
+//! [`PRIOR_SIGMA_M`] metres, is
+//!
+//! Var_v = 1 / ((H_c,v / σ_c² + H_d,v / σ_d²) / k² + 1 / σ_p²)
+//!
+//! (one sensor's terms for its own read-out). k = 1 is the raw Laplace posterior, which treats every pixel
+//! as an independent measurement of a field no more flexible than the perturbation grid; both are false,
+//! so it is overconfident by a global factor. [`calibrate`] fits k per read-out on lidar returns held out
+//! of training (never on ground truth). A point's σ is interpolated from its cell's vertices (BayesRays'
+//! squared-weight rule); `log_std_*` = log10 σ in metres (DATASET.md).
 //!
 //! * [`cpu`]: the referee: per-sample Jacobians from the CPU field, the Fisher by a per-ray map.
 //! * [`gpu`]: the WGSL pass (`shaders/uncertainty.wgsl` + the trainer's kernels), the product.
+//! * [`reliability`]: σ against the error: binned RMS error, coverage at 1σ / 2σ, calibration error.
 //! * [`sparsify`]: sparsification curves, AUSE and the error-vs-uncertainty plots.
 
+pub mod calibrate;
 pub mod cpu;
 pub mod filter;
 pub mod gpu;
+pub mod reliability;
 pub mod sparsify;
 
 use serde::{Deserialize, Serialize};
 
 use crate::gpu::GpuError;
 use crate::train::cpu::TrainRay;
-use crate::train::data::TrainData;
+use crate::train::data::{SceneFrame, TrainData};
 use crate::train::{Engine, Mode, Trainer};
 
 /// How the uncertainty pass runs.
@@ -34,9 +49,37 @@ pub struct UncertaintyConfig {
     /// Batches of training rays accumulated (BayesRays: max(images, 1000)).
     pub batches: usize,
     pub rays_per_batch: usize,
-    /// Prior precision λ; `None` = BayesRays' 1e-4 / L³.
-    pub prior: Option<f64>,
+    /// Prior standard deviation of a perturbation in metres; `None` = [`PRIOR_SIGMA_M`].
+    #[serde(default)]
+    pub prior_sigma_m: Option<f64>,
+    /// Held-out lidar returns rendered to calibrate the read-out ([`calibrate`]); 0 = none (raw).
+    #[serde(default = "default_calibration_returns")]
+    pub calibration_returns: usize,
+    /// The filter's threshold as a σ in metres (`points_filtered.ply` keeps σ ≤ it); `None` = the default
+    /// rule ([`filter::default_threshold`], Tukey's fence).
+    #[serde(default)]
+    pub max_sigma_m: Option<f64>,
     pub seed: u64,
+}
+
+fn default_calibration_returns() -> usize {
+    CALIBRATION_RETURNS
+}
+
+/// Prior standard deviation of a perturbation (metres): what the read-out says where no observation
+/// constrains the field. A rule, not a per-scene setting: a metre is beyond any error a mapping team
+/// would keep, so a point that reads it is not measured at all.
+pub const PRIOR_SIGMA_M: f64 = 1.0;
+
+/// Held-out lidar returns the calibration renders by default: the 68 % quantile it fits then moves by
+/// about ±1 % of its rank.
+pub const CALIBRATION_RETURNS: usize = 8192;
+
+/// Where a read-out stops meaning a measurement: σ ≥ σ_p / √2 is where the observations add no more
+/// information than the prior (H / k² ≤ 1 / σ_p²). The studio shows such points as "unconstrained",
+/// not as a large σ.
+pub fn unconstrained_log_std(prior_sigma_m: f64) -> f32 {
+    (prior_sigma_m / std::f64::consts::SQRT_2).log10() as f32
 }
 
 impl Default for UncertaintyConfig {
@@ -45,7 +88,9 @@ impl Default for UncertaintyConfig {
             cells: 0,
             batches: 1000,
             rays_per_batch: 4096,
-            prior: None,
+            prior_sigma_m: None,
+            calibration_returns: CALIBRATION_RETURNS,
+            max_sigma_m: None,
             seed: 7,
         }
     }
@@ -64,10 +109,17 @@ impl UncertaintyConfig {
                 "uncertainty: batches and rays per batch must be positive".into(),
             ));
         }
-        if let Some(l) = self.prior {
-            if !(l.is_finite() && l > 0.0) {
+        if let Some(s) = self.max_sigma_m {
+            if !(s.is_finite() && s > 0.0) {
                 return Err(GpuError::InvalidInput(format!(
-                    "uncertainty: prior precision {l} is not a positive number"
+                    "uncertainty: --max-sigma {s} m is not a positive number"
+                )));
+            }
+        }
+        if let Some(s) = self.prior_sigma_m {
+            if !(s.is_finite() && s > 0.0) {
+                return Err(GpuError::InvalidInput(format!(
+                    "uncertainty: prior σ {s} m is not a positive number"
                 )));
             }
         }
@@ -87,10 +139,9 @@ impl UncertaintyConfig {
         l.clamp(8.0, 256.0) as u32
     }
 
-    /// λ: as configured, or BayesRays' 1e-4 / L³.
-    pub fn prior_precision(&self) -> f64 {
-        self.prior
-            .unwrap_or(1e-4 / (self.grid_cells() as f64).powi(3))
+    /// The prior's σ in metres: as configured, or [`PRIOR_SIGMA_M`].
+    pub fn prior_sigma(&self) -> f64 {
+        self.prior_sigma_m.unwrap_or(PRIOR_SIGMA_M)
     }
 }
 
@@ -142,23 +193,50 @@ impl PerturbationGrid {
     }
 }
 
-/// Fisher diagonals of one trained field (the trace of each vertex's 3×3 block), with how many rays
-/// built them.
+/// Fisher diagonals of one trained field (the trace of each vertex's 3×3 block), the noise models and
+/// prior that turn them into a posterior, the scene frame that puts it in metres, and its calibration.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Fisher {
     pub cells: u32,
-    /// Σ over training rays and colour channels of ‖∂C/∂θ_v‖² (estimated from a sample).
+    /// Σ over every training pixel and colour channel of ‖∂C/∂θ_v‖² (scaled from a sample).
     pub colour: Vec<f32>,
-    /// Σ over lidar rays of ‖∂E/∂θ_v‖² (E the expected depth, scene units; estimated from a sample).
+    /// Σ over every lidar return trained on of ‖∂E/∂θ_v‖² (E the expected depth, scene units; scaled
+    /// from a sample).
     pub depth: Vec<f32>,
-    /// Training pixels (N of the Laplace normalisation) and lidar returns the diagonals stand for.
+    /// Training pixels and lidar returns the diagonals stand for.
     pub rays: u64,
     pub lidar_rays: u64,
+    /// Prior precision λ = 1 / σ_p² (scene units⁻²).
     pub prior: f64,
-    /// Noise scales of the two sensors (colour in [0, 1] units, depth in scene units) that weigh them in
-    /// the combined information H_c/σ_c² + H_d/σ_d².
+    /// Noise scales of the two sensors: colour in [0, 1] units, depth in scene units.
     pub colour_sigma: f64,
     pub depth_sigma: f64,
+    /// The field's scene frame: read-outs in metres, at metric points.
+    pub frame: SceneFrame,
+    pub calibration: Calibration,
+}
+
+/// Global factors k on the Laplace σ (by read-out: colour, depth, combined), fitted on held-out lidar
+/// returns; all 1 when uncalibrated.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Calibration {
+    pub factor: [f64; 3],
+    /// Held-out returns the factors were fitted on (0: not calibrated).
+    pub returns: u64,
+    /// Coverage the fit reached on them at 1σ (≈ 0.683 when it could).
+    pub coverage: [f64; 3],
+}
+
+impl Calibration {
+    pub const RAW: Calibration = Calibration {
+        factor: [1.0; 3],
+        returns: 0,
+        coverage: [f64::NAN; 3],
+    };
+
+    pub fn is_calibrated(&self) -> bool {
+        self.returns > 0
+    }
 }
 
 /// Which Fisher a read-out uses.
@@ -179,6 +257,32 @@ impl Modality {
             Modality::Combined => "combined",
         }
     }
+
+    /// The PLY property of this read-out.
+    pub fn field(&self) -> &'static str {
+        match self {
+            Modality::Colour => "log_std_colour",
+            Modality::Depth => "log_std_depth",
+            Modality::Combined => "log_std_combined",
+        }
+    }
+
+    pub(crate) fn index(&self) -> usize {
+        match self {
+            Modality::Colour => 0,
+            Modality::Depth => 1,
+            Modality::Combined => 2,
+        }
+    }
+}
+
+/// Which posterior a read-out gives.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Posterior {
+    /// The Laplace posterior as it is (k = 1).
+    Raw,
+    /// With the calibration's factor k.
+    Calibrated,
 }
 
 impl Fisher {
@@ -186,35 +290,51 @@ impl Fisher {
         PerturbationGrid { cells: self.cells }
     }
 
-    /// Posterior variance of vertex v: 1 / (H_v / N + λ), each sensor's H divided by its noise variance.
-    pub fn variance(&self, m: Modality, v: usize) -> f64 {
-        let n = self.rays.max(1) as f64;
+    /// Information of vertex v from the observations (scene units⁻²), each sensor's H over its noise
+    /// variance.
+    pub fn information(&self, m: Modality, v: usize) -> f64 {
         let hc = self.colour[v] as f64 / (self.colour_sigma * self.colour_sigma);
         let hd = self.depth[v] as f64 / (self.depth_sigma * self.depth_sigma);
-        let h = match m {
+        match m {
             Modality::Colour => hc,
             Modality::Depth => hd,
             Modality::Combined => hc + hd,
-        };
-        1.0 / (h / n + self.prior)
+        }
     }
 
-    /// log10 of the posterior standard deviation at a grid position: BayesRays' read-out, the variances
-    /// of the cell's vertices interpolated with normalised squared trilinear weights.
-    pub fn log_std(&self, m: Modality, unit: [f32; 3]) -> f32 {
+    /// Posterior variance of vertex v (scene units²): 1 / (H_v / k² + λ).
+    pub fn variance(&self, m: Modality, post: Posterior, v: usize) -> f64 {
+        let k = self.factor(m, post);
+        1.0 / (self.information(m, v) / (k * k) + self.prior)
+    }
+
+    fn factor(&self, m: Modality, post: Posterior) -> f64 {
+        match post {
+            Posterior::Raw => 1.0,
+            Posterior::Calibrated => self.calibration.factor[m.index()],
+        }
+    }
+
+    /// log10 of the posterior standard deviation (scene units) at a grid position: BayesRays' read-out,
+    /// the variances of the cell's vertices interpolated with normalised squared trilinear weights.
+    pub fn log_std(&self, m: Modality, post: Posterior, unit: [f32; 3]) -> f32 {
         let (idx, w) = self.grid().corners(unit);
         let wsum: f64 = w.iter().map(|&b| (b as f64) * (b as f64)).sum();
+        let k = self.factor(m, post);
         let var: f64 = idx
             .iter()
             .zip(w)
-            .map(|(&v, b)| (b as f64) * (b as f64) / wsum * self.variance(m, v))
+            .map(|(&v, b)| {
+                let var = 1.0 / (self.information(m, v) / (k * k) + self.prior);
+                (b as f64) * (b as f64) / wsum * var
+            })
             .sum();
         (var.sqrt() + 1e-12).log10() as f32
     }
 
-    /// The read-out where no ray constrained the field: log10 sqrt(1/λ).
-    pub fn prior_log_std(&self) -> f32 {
-        (0.5 * (1.0 / self.prior).log10()) as f32
+    /// The prior's σ in metres: the read-out where no ray constrained the field.
+    pub fn prior_sigma_m(&self) -> f64 {
+        1.0 / (self.prior.sqrt() * self.frame.scale)
     }
 
     pub fn check(&self) -> Result<(), GpuError> {
@@ -241,18 +361,31 @@ impl Fisher {
     }
 }
 
-const MAGIC: &[u8; 8] = b"SILVRFI1";
+const MAGIC: &[u8; 8] = b"SILVRFI2";
+/// Magic, cells, rays, lidar rays, λ, σ_c, σ_d, frame centre (3) and scale, factors (3), returns,
+/// coverages (3).
+const HEADER_BYTES: usize = 8 + 4 + 8 + 8 + 8 * 3 + 8 * 4 + 8 * 3 + 8 + 8 * 3;
 
 impl Fisher {
-    /// A compact little-endian file: magic, cells, rays, lidar rays, prior, σ_c, σ_d, then the colour and
-    /// depth diagonals as f32 (the studio loads the same bytes).
+    /// A compact little-endian file (`uncertainty.bin`): the header ([`HEADER_BYTES`]), then the colour
+    /// and depth diagonals as f32.
     pub fn to_bytes(&self) -> Vec<u8> {
-        let mut out = Vec::with_capacity(48 + 8 * self.colour.len());
+        let mut out = Vec::with_capacity(HEADER_BYTES + 8 * self.colour.len());
         out.extend_from_slice(MAGIC);
         out.extend_from_slice(&self.cells.to_le_bytes());
         out.extend_from_slice(&self.rays.to_le_bytes());
         out.extend_from_slice(&self.lidar_rays.to_le_bytes());
-        for v in [self.prior, self.colour_sigma, self.depth_sigma] {
+        let c = &self.calibration;
+        let head = [self.prior, self.colour_sigma, self.depth_sigma]
+            .into_iter()
+            .chain(self.frame.center)
+            .chain([self.frame.scale])
+            .chain(c.factor);
+        for v in head {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&c.returns.to_le_bytes());
+        for v in c.coverage {
             out.extend_from_slice(&v.to_le_bytes());
         }
         for v in self.colour.iter().chain(&self.depth) {
@@ -264,7 +397,13 @@ impl Fisher {
     /// Parses [`Self::to_bytes`]; `name` (the file) goes into errors.
     pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Fisher, GpuError> {
         let bad = |m: &str| GpuError::InvalidInput(format!("{name}: {m}"));
-        if bytes.len() < 52 || &bytes[..8] != MAGIC {
+        if bytes.len() >= 8 && &bytes[..8] == b"SILVRFI1" {
+            return Err(bad(
+                "an uncertainty file of an older silvr (its σ was per training ray, not metric): run \
+                 `silvr uncertainty` on the model again",
+            ));
+        }
+        if bytes.len() < HEADER_BYTES || &bytes[..8] != MAGIC {
             return Err(bad(
                 "not a SiLVR uncertainty file (bad magic or truncated header)",
             ));
@@ -277,7 +416,7 @@ impl Fisher {
             return Err(bad(&format!("{cells} cells per axis is out of range")));
         }
         let nv = PerturbationGrid { cells }.vertices();
-        let want = 52 + 8 * nv;
+        let want = HEADER_BYTES + 8 * nv;
         if bytes.len() != want {
             return Err(bad(&format!(
                 "{} bytes, {want} expected for {cells}^3 cells",
@@ -290,6 +429,7 @@ impl Fisher {
                 .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
                 .collect()
         };
+        let f3 = |o: usize| [f64_at(o), f64_at(o + 8), f64_at(o + 16)];
         let f = Fisher {
             cells,
             rays: u64_at(12),
@@ -297,11 +437,27 @@ impl Fisher {
             prior: f64_at(28),
             colour_sigma: f64_at(36),
             depth_sigma: f64_at(44),
-            colour: floats(52),
-            depth: floats(52 + 4 * nv),
+            frame: SceneFrame {
+                center: f3(52),
+                scale: f64_at(76),
+            },
+            calibration: Calibration {
+                factor: f3(84),
+                returns: u64_at(108),
+                coverage: f3(116),
+            },
+            colour: floats(HEADER_BYTES),
+            depth: floats(HEADER_BYTES + 4 * nv),
         };
-        if !(f.prior > 0.0 && f.colour_sigma > 0.0 && f.depth_sigma > 0.0) {
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if !(positive(f.prior) && positive(f.colour_sigma) && positive(f.depth_sigma)) {
             return Err(bad("prior and noise scales must be positive"));
+        }
+        if !(positive(f.frame.scale) && f.frame.center.iter().all(|c| c.is_finite())) {
+            return Err(bad("the scene frame is not a finite, positive scale"));
+        }
+        if !f.calibration.factor.iter().all(|&k| positive(k)) {
+            return Err(bad("calibration factors must be positive"));
         }
         f.check().map_err(|e| bad(&e.to_string()))?;
         Ok(f)
@@ -332,29 +488,52 @@ pub fn contraction_vjp(x: [f32; 3], d_unit: [f32; 3]) -> [f32; 3] {
     out
 }
 
-/// Per-point uncertainty of a cloud in the scene frame: log10 std per modality, shifted to metres.
+/// Per-point uncertainty of a cloud: log10 σ in metres per read-out.
 pub struct PointUncertainty {
     pub colour: Vec<f32>,
     pub depth: Vec<f32>,
     pub combined: Vec<f32>,
 }
 
-/// Reads the Fisher out at scene-frame points (`scale` = scene units per metre: log-std in metres).
-pub fn read_out(fisher: &Fisher, scene_points: &[[f32; 3]], scale: f64) -> PointUncertainty {
-    use crate::field::encoding::contract_unit;
-    use rayon::prelude::*;
-    let shift = scale.log10() as f32;
-    let per = |m: Modality| -> Vec<f32> {
+impl PointUncertainty {
+    pub fn of(&self, m: Modality) -> &[f32] {
+        match m {
+            Modality::Colour => &self.colour,
+            Modality::Depth => &self.depth,
+            Modality::Combined => &self.combined,
+        }
+    }
+}
+
+impl Fisher {
+    /// log10 σ in metres of one read-out at scene-frame points.
+    pub fn read_out_scene(
+        &self,
+        m: Modality,
+        post: Posterior,
+        scene_points: &[[f32; 3]],
+    ) -> Vec<f32> {
+        use crate::field::encoding::contract_unit;
+        use rayon::prelude::*;
+        let shift = self.frame.scale.log10() as f32;
         scene_points
             .par_iter()
             .with_min_len(1024)
-            .map(|&p| fisher.log_std(m, contract_unit(p)) - shift)
+            .map(|&p| self.log_std(m, post, contract_unit(p)) - shift)
             .collect()
-    };
-    PointUncertainty {
-        colour: per(Modality::Colour),
-        depth: per(Modality::Depth),
-        combined: per(Modality::Combined),
+    }
+
+    /// The three read-outs (log10 σ, metres) at points of the dataset's metric frame.
+    pub fn read_out_metric(&self, post: Posterior, points: &[glam::DVec3]) -> PointUncertainty {
+        let scene: Vec<[f32; 3]> = points
+            .iter()
+            .map(|&p| self.frame.to_scene(p).as_vec3().to_array())
+            .collect();
+        PointUncertainty {
+            colour: self.read_out_scene(Modality::Colour, post, &scene),
+            depth: self.read_out_scene(Modality::Depth, post, &scene),
+            combined: self.read_out_scene(Modality::Combined, post, &scene),
+        }
     }
 }
 
@@ -363,12 +542,14 @@ pub const COLOUR_RAY: u32 = 1;
 /// Ray flag: the ray adds to the depth Fisher (it has a lidar return).
 pub const DEPTH_RAY: u32 = 2;
 
-/// Where the pass draws rays: every training pixel (colour) and every lidar pixel (depth), so that the
-/// sparse lidar gets as many samples as the images; contributions are scaled back to the whole set.
+/// Where the pass draws rays: every training pixel (colour) and every lidar return trained on (depth), so
+/// that the sparse lidar gets as many samples as the images; contributions are scaled back to the whole
+/// set.
 pub struct RaySource {
-    /// (image, pixel) of every training pixel with a lidar return (not sky).
+    /// (image, pixel) of every training pixel with a lidar return (not sky) that training used (held-out
+    /// returns are not observations of the field).
     lidar_pixels: Vec<(usize, u32)>,
-    /// Training pixels in all (N of the Laplace normalisation: rays the field was fitted to).
+    /// Training pixels in all: the colour observations the field was fitted to.
     pub pixels: u64,
     lidar: bool,
 }
@@ -383,7 +564,10 @@ impl RaySource {
             pixels += im.width as u64 * im.height as u64;
             if lidar {
                 for (p, &d) in im.depth.iter().enumerate() {
-                    if d > 0 && d != crate::lidar::images::SKY_DEPTH {
+                    if d > 0
+                        && d != crate::lidar::images::SKY_DEPTH
+                        && !crate::train::data::is_held_out_return(i, p)
+                    {
                         lidar_pixels.push((i, p as u32));
                     }
                 }
@@ -448,9 +632,10 @@ impl RaySource {
     }
 }
 
-/// The sensors' noise scales for the combined read-out, by rule rather than per-scene tuning: colour, the
-/// trained field's own RMS colour residual over the last tenth of training (at least one 8-bit level);
-/// depth, the DS-NeRF σ training ended with (the lidar noise the loss assumed), in scene units.
+/// The sensors' noise models, by rule rather than per-scene tuning: colour, the trained field's own RMS
+/// colour residual over the last tenth of training (at least one 8-bit level; image noise and what the
+/// field cannot fit alike); depth, the lidar's range noise as the dataset states it
+/// ([`TrainData::lidar_range_noise_m`]), in scene units.
 pub fn noise_scales(trainer: &Trainer) -> (f64, f64) {
     let h = &trainer.history;
     let tail = &h[h.len() - h.len().div_ceil(10)..];
@@ -460,23 +645,14 @@ pub fn noise_scales(trainer: &Trainer) -> (f64, f64) {
         tail.iter().map(|s| s.rgb_mse).sum::<f64>() / tail.len() as f64
     };
     let colour = mse.sqrt().max(1.0 / 255.0);
-    let depth = trainer.config.depth_sigma_at(trainer.step) as f64 * trainer.data.frame.scale;
+    let depth = trainer.data.lidar_range_noise_m * trainer.data.frame.scale;
     (colour, depth)
 }
 
-/// Adds the three read-out fields (`log_std_colour`, `log_std_depth`, `log_std_combined`: log10 posterior
-/// std in metres) to a cloud in the dataset's metric frame.
-pub fn annotate_cloud(
-    fisher: &Fisher,
-    frame: &crate::train::data::SceneFrame,
-    cloud: &mut crate::pointcloud::PointCloud,
-) {
-    let scene: Vec<[f32; 3]> = cloud
-        .positions
-        .iter()
-        .map(|&p| frame.to_scene(p).as_vec3().to_array())
-        .collect();
-    let u = read_out(fisher, &scene, frame.scale);
+/// Adds the three read-out fields (`log_std_colour`, `log_std_depth`, `log_std_combined`: log10 σ in
+/// metres, calibrated when the Fisher is) to a cloud in the dataset's metric frame.
+pub fn annotate_cloud(fisher: &Fisher, cloud: &mut crate::pointcloud::PointCloud) {
+    let u = fisher.read_out_metric(Posterior::Calibrated, &cloud.positions);
     cloud.set_scalar("log_std_colour", u.colour);
     cloud.set_scalar("log_std_depth", u.depth);
     cloud.set_scalar("log_std_combined", u.combined);
@@ -485,8 +661,9 @@ pub fn annotate_cloud(
 /// The uncertainty pass over a trained field: `config.batches` batches of `config.rays_per_batch` pixel
 /// rays (colour) plus as many lidar rays (depth), through the trainer's engine (the WGSL pass on
 /// `Engine::Wgpu`, the CPU reference otherwise). Each Fisher is scaled from its samples to the whole
-/// training set (every pixel, every lidar return), and N is the training pixel count, so Var = 1/(H/N + λ)
-/// is per training ray as in BayesRays. `progress(done, of)` after each batch.
+/// training set (every pixel, every lidar return trained on): the posterior is given all the
+/// observations, not one average ray (BayesRays' H/N, whose σ is √N too large). Uncalibrated
+/// ([`calibrate`] fits the factors). `progress(done, of)` after each batch.
 pub async fn compute_fisher(
     trainer: &mut Trainer,
     config: &UncertaintyConfig,
@@ -543,15 +720,19 @@ pub async fn compute_fisher(
     let sc = source.pixels as f64 / n_colour.max(1) as f64;
     let sd = source.lidar_pixels() as f64 / n_depth.max(1) as f64;
     let (colour_sigma, depth_sigma) = noise_scales(trainer);
+    let frame = trainer.data.frame;
+    let prior_sigma = config.prior_sigma() * frame.scale;
     let f = Fisher {
         cells: grid.cells,
         colour: colour.into_iter().map(|v| (v * sc) as f32).collect(),
         depth: depth.into_iter().map(|v| (v * sd) as f32).collect(),
         rays: source.pixels,
         lidar_rays: source.lidar_pixels(),
-        prior: config.prior_precision(),
+        prior: 1.0 / (prior_sigma * prior_sigma),
         colour_sigma,
         depth_sigma,
+        frame,
+        calibration: Calibration::RAW,
     };
     f.check()?;
     Ok(f)
@@ -577,7 +758,7 @@ mod tests {
             ..c(1000, 4096)
         };
         assert_eq!(fixed.grid_cells(), 32);
-        assert!((fixed.prior_precision() - 1e-4 / 32768.0).abs() < 1e-15);
+        assert_eq!(fixed.prior_sigma(), PRIOR_SIGMA_M);
         assert!(UncertaintyConfig {
             cells: 2000,
             ..fixed
@@ -645,41 +826,66 @@ mod tests {
 
     #[test]
     fn unobserved_space_reads_the_prior_and_information_lowers_it() {
-        let cfg = UncertaintyConfig {
-            cells: 8,
-            ..Default::default()
-        };
         let n = PerturbationGrid { cells: 8 }.vertices();
+        // Scene units of 0.1 m (scale 10 / m): a 1 m prior is 10 scene units.
+        let frame = SceneFrame {
+            center: [1.0, 2.0, 3.0],
+            scale: 10.0,
+        };
         let mut f = Fisher {
             cells: 8,
             colour: vec![0.0; n],
             depth: vec![0.0; n],
             rays: 1000,
             lidar_rays: 500,
-            prior: cfg.prior_precision(),
+            prior: 1.0 / (PRIOR_SIGMA_M * frame.scale).powi(2),
             colour_sigma: 0.1,
             depth_sigma: 0.05,
+            frame,
+            calibration: Calibration::RAW,
         };
         f.check().unwrap();
-        let p = [0.41f32, 0.52, 0.63];
-        for m in Modality::ALL {
-            assert!((f.log_std(m, p) - f.prior_log_std()).abs() < 1e-5);
+        assert!((f.prior_sigma_m() - PRIOR_SIGMA_M).abs() < 1e-12);
+        let p = glam::DVec3::new(1.2, 2.1, 3.05);
+        let unit = contract_unit(frame.to_scene(p).as_vec3().to_array());
+        for post in [Posterior::Raw, Posterior::Calibrated] {
+            let u = f.read_out_metric(post, &[p]);
+            for m in Modality::ALL {
+                assert!(u.of(m)[0].abs() < 1e-5, "the prior reads log10(1 m) = 0");
+            }
         }
-        let (idx, _) = f.grid().corners(p);
+        let (idx, _) = f.grid().corners(unit);
+        // Information 10⁴ per vertex over σ_d² = 0.0025: σ = 1/√(4e6 + 0.01) scene units = 0.05 mm.
         for &v in &idx {
-            f.depth[v] = 10.0;
+            f.depth[v] = 1e4;
         }
-        assert!(f.log_std(Modality::Depth, p) < f.prior_log_std() - 1.0);
-        assert!((f.log_std(Modality::Colour, p) - f.prior_log_std()).abs() < 1e-5);
-        assert!(f.log_std(Modality::Combined, p) <= f.log_std(Modality::Depth, p) + 1e-6);
+        let depth = f.read_out_metric(Posterior::Raw, &[p]).depth[0];
+        let want = (1.0 / (4e6f64 + 0.01).sqrt() / 10.0).log10() as f32;
+        assert!((depth - want).abs() < 1e-4, "{depth} vs {want}");
+        let raw = f.read_out_metric(Posterior::Raw, &[p]);
+        assert!(raw.colour[0].abs() < 1e-5);
+        assert!(raw.combined[0] <= raw.depth[0] + 1e-6);
+        // A calibration factor k divides the information by k²: σ grows k-fold while it dominates.
+        f.calibration = Calibration {
+            factor: [1.0, 100.0, 1.0],
+            returns: 10,
+            coverage: [0.68; 3],
+        };
+        let cal = f.read_out_metric(Posterior::Calibrated, &[p]).depth[0];
+        assert!((cal - depth - 2.0).abs() < 1e-3, "{cal} vs {depth} + 2");
+        assert!(cal < unconstrained_log_std(PRIOR_SIGMA_M));
         let bytes = f.to_bytes();
         assert_eq!(Fisher::from_bytes(&bytes, "u.bin").unwrap(), f);
-        for cut in [0, 10, 51, bytes.len() - 1] {
+        for cut in [0, 10, 51, HEADER_BYTES, bytes.len() - 1] {
             let e = Fisher::from_bytes(&bytes[..cut], "u.bin")
                 .unwrap_err()
                 .to_string();
             assert!(e.contains("u.bin"), "{e}");
         }
+        let mut old = bytes.clone();
+        old[..8].copy_from_slice(b"SILVRFI1");
+        let e = Fisher::from_bytes(&old, "u.bin").unwrap_err().to_string();
+        assert!(e.contains("older silvr"), "{e}");
         f.depth[idx[0]] = f32::NAN;
         assert!(f.check().is_err());
         assert!(Fisher::from_bytes(&f.to_bytes(), "u.bin").is_err());
