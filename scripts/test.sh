@@ -14,16 +14,39 @@ export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
 export SILVR_STUDIO_FIXTURES="${SILVR_STUDIO_FIXTURES:-$PWD/target/studio-fixtures}"
 rm -rf "$SILVR_STUDIO_FIXTURES"
 
+# Every test's output goes to target/test-logs too; tests that skip print `SKIP: <test>: <why>` (the Rust
+# tests through one helper, core/tests/common/skip.rs; node's test runner `# SKIP`), and the summary of them
+# is printed at the end, pass or fail.
+logs="$PWD/target/test-logs"
+mkdir -p "$logs"
+rm -f "$logs"/*.log
+skip_summary() {
+	local skips
+	skips=$(cat "$logs"/*.log 2>/dev/null | grep -oE 'SKIP: .*|# SKIP.*' | sort -u || true)
+	if [ -n "$skips" ]; then
+		echo "== skipped tests ($(wc -l <<<"$skips")):"
+		echo "$skips"
+	else
+		echo "== no test skipped"
+	fi
+}
+cleanup=(skip_summary)
+on_exit() {
+	local i
+	for ((i = ${#cleanup[@]} - 1; i >= 0; i--)); do ${cleanup[i]} || true; done
+}
+trap on_exit EXIT
+
 # A one-node Slurm for the reconstruct test (`silvr reconstruct --scheduler slurm`): started here as root
 # (Debian's slurmctld/slurmd/munge, no systemd needed) and stopped by PID on exit; elsewhere the test skips.
 if [ "$(id -u)" = 0 ] && [ "${SILVR_NO_SLURM:-0}" != 1 ] && command -v apt-get >/dev/null; then
 	echo "== one-node Slurm (scripts/slurm.sh up)"
-	mkdir -p target
-	if ! STATE="$PWD/target/slurm" scripts/slurm.sh up >target/slurm-up.log 2>&1; then
-		cat target/slurm-up.log
+	stop_slurm() { STATE="$PWD/target/slurm" scripts/slurm.sh down; }
+	cleanup+=(stop_slurm)
+	if ! STATE="$PWD/target/slurm" scripts/slurm.sh up >"$logs/slurm-up.txt" 2>&1; then
+		cat "$logs/slurm-up.txt"
 		exit 1
 	fi
-	trap 'STATE="$PWD/target/slurm" scripts/slurm.sh down' EXIT
 	export SILVR_REQUIRE_SLURM=1
 fi
 
@@ -32,7 +55,7 @@ echo "== native tests (cargo test --workspace)"
 # (SILVR_TESTS_PREBUILT) instead of `cargo build -p silvr`, which resolves features for one package and
 # compiled naga, wgpu, image and our crates a second time.
 cargo build --workspace --all-targets
-SILVR_TESTS_PREBUILT=1 cargo test --workspace
+SILVR_TESTS_PREBUILT=1 cargo test --workspace 2>&1 | tee "$logs/cargo-test.log"
 
 echo "== evaluator cross-check against SciPy cKDTree (and scikit-image SSIM)"
 python3 scripts/crosscheck_eval.py
@@ -40,5 +63,5 @@ python3 scripts/crosscheck_eval.py
 # The browser tests compile silvr-core for wasm32 (through silvr-web and silvr-worker): that is also the
 # check that the engine has no native-only dependency in its wasm32 build.
 echo "== browser tests"
-scripts/browser-tests.sh
+scripts/browser-tests.sh 2>&1 | tee "$logs/browser-tests.log"
 echo "== all tests passed"

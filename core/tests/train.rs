@@ -12,6 +12,8 @@ use silvr_core::geometry::Se3;
 use silvr_core::train::data::{LoadOptions, TrainData};
 use silvr_core::train::{checkpoint::Checkpoint, Backend, Mode, TrainConfig, Trainer};
 
+mod common;
+
 const W: u32 = 40;
 const H: u32 = 30;
 const WALL: f64 = 1.5;
@@ -218,12 +220,7 @@ fn vision_data_without_depth_trains_and_has_no_lidar() {
 fn real_fox_capture_loads_and_trains_when_present() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/real/fox");
     if !dir.join("transforms.json").is_file() {
-        assert!(
-            std::env::var("SILVR_REQUIRE_DATA").as_deref() != Ok("1"),
-            "{} absent and SILVR_REQUIRE_DATA=1",
-            dir.display()
-        );
-        eprintln!("skipping: {} absent", dir.display());
+        common::skip("SILVR_REQUIRE_DATA", &format!("{} absent", dir.display()));
         return;
     }
     let data = TrainData::load(

@@ -2,7 +2,7 @@
 //! at 180×135, exact ground truth): the `small` model trained from the same seed and batches on both,
 //! step by step, then held-out PSNR, exported-cloud accuracy, the uncertainty pass (Fisher diagonals and
 //! AUSE) and resuming a WGSL checkpoint. The GPU is lavapipe in CI; without an adapter the tests skip,
-//! unless `SILVR_REQUIRE_GPU` is set (the test scripts set it), when they fail.
+//! unless `SILVR_REQUIRE_GPU=1` (the test scripts set it), when they fail.
 //!
 //! How close the two runs can stay: one step's gradients agree to ~1e-6 of each tensor's largest (f32
 //! sums in another order: the hash grid's compare-exchange float adds land in whatever order the threads
@@ -49,15 +49,15 @@ fn one_at_a_time() -> MutexGuard<'static, ()> {
     LOCK.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
 }
 
-/// A device, or `None` (skipped with a message) when there is none and the run does not demand one.
+/// A device, or `None` (the test skips, [`silvr_tests::skip`]) when there is none and the run does not
+/// demand one (`SILVR_REQUIRE_GPU=1`).
 fn gpu() -> Option<Gpu> {
     match pollster::block_on(Gpu::new(GpuOptions::default())) {
         Ok(g) => Some(g),
-        Err(e) if std::env::var_os("SILVR_REQUIRE_GPU").is_none() => {
-            eprintln!("skipping WGSL parity test: {e}");
+        Err(e) => {
+            silvr_tests::skip("SILVR_REQUIRE_GPU", &format!("no usable GPU: {e}"));
             None
         }
-        Err(e) => panic!("SILVR_REQUIRE_GPU is set but no GPU is usable: {e}"),
     }
 }
 

@@ -1,5 +1,8 @@
-//! Shared by the GPU kernel tests: a poisoned device.
+//! Shared by the GPU kernel tests: a poisoned device; and by every test of core: the one way to skip.
 #![allow(dead_code)]
+
+mod skip;
+pub use skip::skip;
 
 use rand::{Rng, SeedableRng};
 use silvr_core::field::model::{ModelConfig, Params};
@@ -10,19 +13,23 @@ use silvr_core::train::cpu::{Batch, TrainRay};
 /// Written into every buffer a kernel writes before it runs; an element left untouched reads back as this.
 pub const POISON: u32 = 0xDEAD_BEEF;
 
-/// A poisoned device, or `None` (test skipped with a message) when there is no adapter and the run does
+/// A poisoned device, or `None` (the test skips, see [`skip`]) when there is no adapter and the run does
 /// not demand one. The test scripts set `SILVR_REQUIRE_GPU=1`, so CI fails instead of skipping.
 pub fn gpu() -> Option<Gpu> {
-    match pollster::block_on(Gpu::new(GpuOptions {
+    gpu_with(GpuOptions {
         poison: Some(POISON),
         ..Default::default()
-    })) {
+    })
+}
+
+/// [`gpu`] with other options (e.g. the loop form of the kernels, or profiling).
+pub fn gpu_with(options: GpuOptions) -> Option<Gpu> {
+    match pollster::block_on(Gpu::new(options)) {
         Ok(g) => Some(g),
-        Err(e) if std::env::var_os("SILVR_REQUIRE_GPU").is_none() => {
-            eprintln!("skipping GPU test: {e}");
+        Err(e) => {
+            skip("SILVR_REQUIRE_GPU", &format!("no usable GPU: {e}"));
             None
         }
-        Err(e) => panic!("SILVR_REQUIRE_GPU is set but no GPU is usable: {e}"),
     }
 }
 
