@@ -732,11 +732,37 @@ fn bench_nerfacto_heads() {
     }
 }
 
+/// The MLP passes `gpu` ran since the last call, as (kernel::entry, dispatches), from the kernel layer's
+/// per-pass profile (`GpuOptions::profile`): what ran, not what a flag says will.
+fn passes_ran(gpu: &silvr_core::gpu::Gpu) -> Vec<(String, u64)> {
+    gpu.profile_take()
+        .into_iter()
+        .map(|r| (r.pass, r.calls))
+        .collect()
+}
+
+/// The dispatches one inference of `c` records: one fused `forward_fused` where [`mlp::fuses_inference`],
+/// else the layer by layer forward (hardware GPUs, browsers).
+fn inference_passes(gpu: &silvr_core::gpu::Gpu, c: &MlpConfig) -> Vec<(String, u64)> {
+    if mlp::fuses_inference(gpu) {
+        vec![("mlp::forward_fused".into(), 1)]
+    } else {
+        vec![("mlp::forward_layer".into(), c.n_layers() as u64)]
+    }
+}
+
 /// Inference (`record_inference`: one fused dispatch on lavapipe, the layer by layer forward elsewhere)
-/// gives the forward's outputs on nerfacto's heads and odd shapes, into a poisoned output buffer.
+/// gives the forward's outputs on nerfacto's heads and odd shapes, into a poisoned output buffer, and the
+/// dispatches that ran are the path it claims (counted by the kernel layer's profile).
 #[test]
 fn inference_matches_cpu() {
-    let Some(gpu) = gpu() else { return };
+    let Some(gpu) = common::gpu_with(silvr_core::gpu::GpuOptions {
+        poison: Some(POISON),
+        profile: true,
+        ..Default::default()
+    }) else {
+        return;
+    };
     // lavapipe (CI) must take the fused path this test is for. There every shape fuses: nerfacto's colour
     // head stages its two 64 x 64 layers in the 32 KiB of workgroup memory and reads the last from storage
     // (both paths of the generated forward).
@@ -757,7 +783,9 @@ fn inference_matches_cpu() {
         let input = random_values(400 + i as u64, ROWS * c.input);
         let want = forward_cpu(&c, &params, &input).unwrap();
         let scale = forward_scale(&c, &params, &input);
+        passes_ran(&gpu);
         let got = pollster::block_on(mlp::inference_gpu(&gpu, &c, &params, &input)).unwrap();
+        assert_eq!(passes_ran(&gpu), inference_passes(&gpu, &c), "{c:?}");
         assert_eq!(got.len(), want.output.len());
         assert!(
             !got.iter().any(|&v| is_poison(v)),
@@ -769,18 +797,28 @@ fn inference_matches_cpu() {
 }
 
 /// The loop form of the kernels (what every adapter but lavapipe runs: `GpuOptions::loop_kernels`) against
-/// the CPU reference on nerfacto's heads and an odd shape: forward, and the full backward.
+/// the CPU reference on nerfacto's heads and an odd shape: forward, inference (the layer by layer path
+/// hardware GPUs and browsers run, checked by the dispatches that ran), and the full backward; every
+/// output as long as the reference's.
 #[test]
 fn loop_kernels_match_cpu() {
-    let Ok(gpu) = pollster::block_on(silvr_core::gpu::Gpu::new(silvr_core::gpu::GpuOptions {
+    let Some(gpu) = common::gpu_with(silvr_core::gpu::GpuOptions {
         poison: Some(POISON),
         loop_kernels: true,
+        profile: true,
         ..Default::default()
-    })) else {
-        assert!(std::env::var_os("SILVR_REQUIRE_GPU").is_none(), "no GPU");
+    }) else {
         return;
     };
     assert!(!gpu.straight_line_kernels());
+    assert!(!mlp::fuses_inference(&gpu));
+    let close = |what: &str, c: &MlpConfig, got: &[f32], want: &[f32], tol: &dyn Fn(f32) -> f32| {
+        assert_eq!(got.len(), want.len(), "{c:?}: {what} length");
+        for (a, b) in got.iter().zip(want) {
+            assert!((a - b).abs() <= tol(*b), "{c:?}: {what} {a} vs {b}");
+        }
+    };
+    let rel = |b: f32| 1e-4 * (1.0 + b.abs());
     for (i, c) in [
         MlpConfig::nerfacto_density(),
         MlpConfig::nerfacto_colour(),
@@ -795,12 +833,16 @@ fn loop_kernels_match_cpu() {
         let d_out = random_values(90 + i as u64, n * c.output);
         let want = forward_cpu(&c, &params, &input).unwrap();
         let got = pollster::block_on(forward_gpu(&gpu, &c, &params, &input)).unwrap();
-        for (a, b) in got.output.iter().zip(&want.output) {
-            assert!(
-                (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
-                "{c:?}: forward {a} vs {b}"
-            );
-        }
+        close("forward", &c, &got.output, &want.output, &rel);
+        close("saved", &c, &got.saved, &want.saved, &rel);
+        passes_ran(&gpu);
+        let inf = pollster::block_on(mlp::inference_gpu(&gpu, &c, &params, &input)).unwrap();
+        assert_eq!(
+            passes_ran(&gpu),
+            [("mlp::forward_layer".to_string(), c.n_layers() as u64)],
+            "{c:?}: inference on the loop kernels"
+        );
+        close("inference", &c, &inf, &want.output, &rel);
         let gw = backward_cpu(&c, &params, &input, &want.saved, &d_out, true).unwrap();
         let gg = pollster::block_on(backward_gpu(
             &gpu,
@@ -813,15 +855,7 @@ fn loop_kernels_match_cpu() {
         ))
         .unwrap();
         let scale = gw.params.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
-        for (a, b) in gg.params.iter().zip(&gw.params) {
-            assert!((a - b).abs() <= 1e-4 * scale, "{c:?}: dparams {a} vs {b}");
-        }
-        let (xi, xw) = (gg.input.unwrap(), gw.input.unwrap());
-        for (a, b) in xi.iter().zip(&xw) {
-            assert!(
-                (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
-                "{c:?}: dinput {a} vs {b}"
-            );
-        }
+        close("dparams", &c, &gg.params, &gw.params, &|_| 1e-4 * scale);
+        close("dinput", &c, &gg.input.unwrap(), &gw.input.unwrap(), &rel);
     }
 }
