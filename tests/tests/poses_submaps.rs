@@ -231,6 +231,9 @@ fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
     };
     let (fc, fd) = (frac(&mc), frac(&manifest));
     println!("co-visible structure across the cut: covis {fc:.3}, distance {fd:.3}");
+    // Not below: on this short straight street both cut between the same keyframes (measured 0.485 and
+    // 0.485); the strict claim is checked on SfM tracks, in
+    // `poses_refines_the_prior_and_names_a_textureless_image`.
     assert!(fc > 0.0 && fc <= fd + 1e-9, "covis {fc} vs distance {fd}");
 
     // Refusals name the problem: an existing output, co-visibility without lidar depth.
@@ -359,10 +362,41 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
         report["single"]["heldout_psnr_mean"].as_f64().unwrap() > 10.0,
         "{report}"
     );
-    assert!(ev["claims"]["filter_accuracy_gain"]
-        .as_f64()
+    // The merged map's uncertainty filter, as the README claims it. The default rule (Tukey's fence on the
+    // combined log-std: points_filtered.ply) never makes the map less accurate and costs at most the
+    // paper's 10 % of completeness (GT within 10 cm); where it drops points, the filtered map is the more
+    // accurate (gain > 0). In this run it drops none (measured 2026-12-04, also at 600 steps: each submap's
+    // log-std is bounded above by the prior's, where no uncertainty ray reaches a cell, and bunched below
+    // it, so Q3 + 1.5 IQR lies above the largest value), so its gain is asserted on the filter curve
+    // below, which ranks the same log-std.
+    let f = |c: &serde_json::Value, k: &str| c[k].as_f64().unwrap();
+    let (acc_u, acc_f) = (
+        f(&ev["unfiltered"], "accuracy_m"),
+        f(&ev["filtered"], "accuracy_m"),
+    );
+    let claims = &ev["claims"];
+    let (gain, loss) = (
+        f(claims, "filter_accuracy_gain"),
+        f(claims, "filter_completeness_loss_at_10cm"),
+    );
+    let points: u64 = report["per_submap"]
+        .as_array()
         .unwrap()
-        .is_finite());
+        .iter()
+        .map(|s| s["points"].as_u64().unwrap())
+        .sum();
+    println!(
+        "default filter: kept {kept} of {points} submap points; merged accuracy {acc_u:.4} -> {acc_f:.4} m \
+         (gain {gain:+.3}), completeness loss {loss:+.3}"
+    );
+    assert!((gain - (1.0 - acc_f / acc_u)).abs() < 1e-9, "{claims}");
+    assert!(acc_f <= acc_u && gain >= 0.0 && loss <= 0.10, "{claims}");
+    if kept < points {
+        assert!(
+            gain > 0.0,
+            "the filter dropped points and gained nothing: {claims}"
+        );
+    }
     // Each submap scored on its own clouds against the part of the GT its cameras saw (exact depth).
     let per_submap = report["per_submap"].as_array().unwrap();
     let seen = ev["per_submap_seen"]["submaps"].as_array().unwrap();
@@ -391,7 +425,6 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
     // The filter curve starts at the unfiltered merged map and keeps fewer points at each step; the
     // report's charts are written beside it.
     let curve = ev["filter_curve"].as_array().unwrap();
-    let f = |c: &serde_json::Value, k: &str| c[k].as_f64().unwrap();
     assert_eq!(curve.len(), 6, "{curve:?}");
     assert!(
         (f(&curve[0], "accuracy_m") - f(&ev["unfiltered"], "accuracy_m")).abs() < 1e-6,
@@ -400,6 +433,27 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
     assert!(curve
         .windows(2)
         .all(|w| f(&w[1], "kept_fraction") < f(&w[0], "kept_fraction")));
+    // The uncertainty ranks error: every step (the most uncertain 10 % … 50 % dropped) is more accurate
+    // than the unfiltered map; dropping 10 % gains accuracy at less than 10 % completeness loss (measured
+    // in three runs of this test's settings, 2026-12-04: +1.4 % for 4.4 %, +1.4 % for 4.5 %; at 600 steps
+    // +1.5 % for 3.6 %: the bound is the paper's and about twice what was measured), and dropping 30 %
+    // gains more than 2 % (measured 4.5-5.0 %).
+    let gain_at = |c: &serde_json::Value| 1.0 - f(c, "accuracy_m") / f(&curve[0], "accuracy_m");
+    let loss_at = |c: &serde_json::Value| 1.0 - f(c, "recall_10cm") / f(&curve[0], "recall_10cm");
+    println!(
+        "filter curve (kept, gain, completeness loss): {:?}",
+        curve
+            .iter()
+            .map(|c| (f(c, "kept_fraction"), gain_at(c), loss_at(c)))
+            .collect::<Vec<_>>()
+    );
+    assert!(curve[1..].iter().all(|c| gain_at(c) > 0.0), "{curve:?}");
+    assert!(loss_at(&curve[1]) < 0.10, "{curve:?}");
+    assert!(gain_at(&curve[3]) > 0.02, "{curve:?}");
+    // That co-visibility cuts fewer shared views than distance is asserted where the cut differs:
+    // `poses_refines_the_prior_and_names_a_textureless_image` (SfM tracks, the paper's co-visibility; on
+    // the lidar's voxels this short straight street is cut in the same place by both, see
+    // `the_prior_drifts_within_its_documented_size_and_submaps_train_in_place`).
     for png in ev["plots"].as_array().unwrap() {
         let bytes = std::fs::read(out.join(png.as_str().unwrap())).unwrap();
         assert!(bytes.starts_with(b"\x89PNG"), "{png}");
@@ -649,7 +703,8 @@ fn poses_refines_the_prior_and_names_a_textureless_image() {
     assert!(model.points.len() > 300, "{} points", model.points.len());
 
     // The poses output cut into submaps by co-visibility counts shared SfM tracks (the paper's), and
-    // that cut splits fewer shared tracks than the distance baseline's on the same images.
+    // that cut splits fewer shared tracks than the distance baseline's on the same images (the README's
+    // "co-visibility cut weight below distance's"; the reconstruct test points here).
     let mut track_cut = Vec::new();
     for method in ["covis", "distance"] {
         let dir = tmp.path().join(format!("sub-{method}"));
@@ -683,8 +738,9 @@ fn poses_refines_the_prior_and_names_a_textureless_image() {
         }
         assert_eq!(seen.len(), 36, "{m}");
     }
+    // Measured 3439 vs 3627 shared tracks (37.5 % vs 39.6 %); the poses stage is deterministic.
     assert!(
-        track_cut[0] <= track_cut[1],
+        track_cut[0] < track_cut[1],
         "covis {} vs distance {}",
         track_cut[0],
         track_cut[1]
