@@ -37,17 +37,23 @@ on_exit() {
 }
 trap on_exit EXIT
 
-# A one-node Slurm for the reconstruct test (`silvr reconstruct --scheduler slurm`): started here as root
-# (Debian's slurmctld/slurmd/munge, no systemd needed) and stopped by PID on exit; elsewhere the test skips.
-if [ "$(id -u)" = 0 ] && [ "${SILVR_NO_SLURM:-0}" != 1 ] && command -v apt-get >/dev/null; then
+# A private one-node Slurm for the reconstruct test (`silvr reconstruct --scheduler slurm`): started here as
+# root wherever its daemons are installed or installable (Debian's slurmctld/slurmd/munged, no systemd
+# needed), with its own config, munge, ports and state under target/slurm (a cluster's Slurm on this machine
+# is never used or changed), reached through SLURM_CONF, and stopped by PID on exit. Elsewhere the test
+# skips, and says so in the summary.
+slurm_state="$PWD/target/slurm"
+stop_slurm() { STATE="$slurm_state" scripts/slurm.sh down; }
+if [ "$(id -u)" = 0 ] && [ "${SILVR_NO_SLURM:-0}" != 1 ] &&
+	{ command -v apt-get >/dev/null || command -v slurmctld >/dev/null; }; then
 	echo "== one-node Slurm (scripts/slurm.sh up)"
-	stop_slurm() { STATE="$PWD/target/slurm" scripts/slurm.sh down; }
 	cleanup+=(stop_slurm)
-	if ! STATE="$PWD/target/slurm" scripts/slurm.sh up >"$logs/slurm-up.txt" 2>&1; then
+	if ! STATE="$slurm_state" scripts/slurm.sh up >"$logs/slurm-up.txt" 2>&1; then
 		cat "$logs/slurm-up.txt"
 		exit 1
 	fi
-	export SILVR_REQUIRE_SLURM=1
+	SLURM_CONF=$(STATE="$slurm_state" scripts/slurm.sh conf)
+	export SLURM_CONF SILVR_REQUIRE_SLURM=1
 fi
 
 echo "== native tests (cargo test --workspace)"

@@ -1,9 +1,13 @@
 //! `silvr reconstruct --scheduler slurm` on a real (one-node) Slurm, after the poses stage: one array of
-//! submap tasks, the same merged map as the local scheduler's (the poses stage is deterministic too), and a task killed mid-run (`scancel`) reported with its log and
-//! resubmitted alone on the rerun, which ends with the same merged map. `scripts/test.sh` starts the
-//! one-node Slurm (`scripts/slurm.sh up`, as root) and sets `SILVR_REQUIRE_SLURM`; without it and without
-//! `sbatch` on PATH the test skips. Submaps train on the CPU reference (`--backend cpu`, asserted per
-//! submap): bit-for-bit reproducible, which the equality needs; this checks scheduling, not the engine.
+//! submap tasks, the same merged map as the local scheduler's (the poses stage is deterministic too), and
+//! a task killed mid-run (`scancel`) reported with its log and resubmitted alone on the rerun, which ends
+//! with the same merged map. `scripts/test.sh` starts a private
+//! one-node Slurm (`scripts/slurm.sh up`, as root: its own config, munge, ports and state), points
+//! `SLURM_CONF` at it and sets `SILVR_REQUIRE_SLURM=1`. The test uses no other Slurm: where `SLURM_CONF`
+//! does not name a config that `scripts/slurm.sh` wrote (a cluster's, or none), it skips (or fails, with
+//! `SILVR_REQUIRE_SLURM=1`) and submits nothing. Submaps train on the CPU reference (`--backend cpu`,
+//! asserted per submap): bit-for-bit reproducible, which the equality needs; this checks scheduling, not
+//! the engine.
 
 use std::path::Path;
 use std::process::{Command, Stdio};
@@ -22,23 +26,63 @@ fn json(p: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
 }
 
-fn slurm_present() -> bool {
-    Command::new("sinfo")
+/// The first line of every slurm.conf that `scripts/slurm.sh up` writes.
+const MARK: &str = "# SiLVR Studio scripts/slurm.sh: a private one-node Slurm";
+
+/// The private Slurm of `scripts/slurm.sh` that `slurm_conf` (the value of `SLURM_CONF`) names, answering;
+/// otherwise why not. A config without the script's first line is a Slurm this test did not start (a
+/// cluster's): it is never used.
+fn our_slurm(slurm_conf: Option<std::ffi::OsString>) -> Result<(), String> {
+    let conf = slurm_conf.ok_or(
+        "SLURM_CONF is unset: no Slurm of scripts/slurm.sh here (`scripts/slurm.sh up` starts a \
+         one-node one as root; a cluster's Slurm is never used)",
+    )?;
+    let conf = Path::new(&conf);
+    let text =
+        std::fs::read_to_string(conf).map_err(|e| format!("SLURM_CONF={}: {e}", conf.display()))?;
+    if !text.starts_with(MARK) {
+        return Err(format!(
+            "SLURM_CONF={} was not written by scripts/slurm.sh: a Slurm the tests did not start is \
+             not used",
+            conf.display()
+        ));
+    }
+    let answers = Command::new("sinfo")
         .arg("-h")
+        .env("SLURM_CONF", conf)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .status()
-        .is_ok_and(|s| s.success())
+        .is_ok_and(|s| s.success());
+    if !answers {
+        return Err(format!(
+            "the Slurm of SLURM_CONF={} does not answer (sinfo)",
+            conf.display()
+        ));
+    }
+    Ok(())
+}
+
+/// A cluster's configuration (anything `scripts/slurm.sh` did not write) is refused before any Slurm
+/// command runs, as is an unset `SLURM_CONF`.
+#[test]
+fn a_slurm_the_tests_did_not_start_is_not_used() {
+    let tmp = tempfile::tempdir().unwrap();
+    let conf = tmp.path().join("slurm.conf");
+    std::fs::write(&conf, "ClusterName=production\nSlurmctldHost=head\n").unwrap();
+    let err = our_slurm(Some(conf.clone().into())).unwrap_err();
+    assert!(err.contains("not written by scripts/slurm.sh"), "{err}");
+    assert!(our_slurm(None).unwrap_err().contains("SLURM_CONF is unset"));
+    // Marked as the script's, the check goes on to ask it (nothing answers at this path).
+    std::fs::write(&conf, format!("{MARK}; ...\nClusterName=silvr-ci\n")).unwrap();
+    let err = our_slurm(Some(conf.into())).unwrap_err();
+    assert!(err.contains("does not answer"), "{err}");
 }
 
 #[test]
 fn slurm_array_equals_local_and_a_killed_task_is_resubmitted() {
-    if !slurm_present() {
-        assert!(
-            std::env::var_os("SILVR_REQUIRE_SLURM").is_none(),
-            "SILVR_REQUIRE_SLURM is set but sinfo does not answer (scripts/slurm.sh up)"
-        );
-        eprintln!("skipping: no Slurm here (scripts/slurm.sh up starts a one-node one, as root)");
+    if let Err(why) = our_slurm(std::env::var_os("SLURM_CONF")) {
+        silvr_tests::skip("SILVR_REQUIRE_SLURM", &why);
         return;
     }
     let tmp = tempfile::tempdir().unwrap();
