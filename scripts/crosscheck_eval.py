@@ -10,7 +10,9 @@ nearest-neighbour distances, accuracy/completeness (mean and median) and precisi
 (gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1, channel_axis=-1), and with
 scikit-image itself when it is installed (`--with-skimage` installs it).
 
-Exits non-zero on any disagreement. Usage: python3 scripts/crosscheck_eval.py [--with-skimage] [--keep]
+Exits non-zero on any disagreement. Usage: ~/.cache/silvr-venv/bin/python scripts/crosscheck_eval.py
+[--with-skimage] [--keep] (the virtual environment scripts/setup.sh makes; a plain python3 works where numpy
+and scipy are installed).
 """
 
 import json
@@ -27,9 +29,16 @@ THRESHOLDS = [0.03, 0.05, 0.10, 0.20]
 
 
 def ensure(module, package):
+    """Imports `module`, installing `package` with pip first when this Python is a virtual environment
+    (scripts/setup.sh makes one; a system Python refuses or should not get `pip install`, PEP 668)."""
     try:
         return __import__(module)
     except ImportError:
+        if sys.prefix == sys.base_prefix:
+            sys.exit(
+                f"{module} is missing and {sys.executable} is not a virtual environment: run scripts/setup.sh "
+                "and this script with its Python (scripts/test.sh does: $SILVR_VENV, default ~/.cache/silvr-venv)"
+            )
         print(f"installing {package} with pip ...", flush=True)
         subprocess.check_call([sys.executable, "-m", "pip", "install", "--quiet", package])
         return __import__(module)

@@ -6,7 +6,9 @@
 #                             wasm-bindgen-cli pinned to the crate's version, trunk, web/'s npm packages
 #                             (binaryen 132, playwright-core)
 #   scripts/setup.sh [test]   + the browser tests: Chromium + ChromeDriver, Firefox ESR ≥ 141 (bookworm-security
-#                             has 153; bookworm's 140 has no WebGPU) (the default: everything)
+#                             has 153; bookworm's 140 has no WebGPU), and numpy + scipy for the evaluator's
+#                             cross-check in a virtual environment ($SILVR_VENV, default ~/.cache/silvr-venv;
+#                             python3-venv from apt where `python3 -m venv` is missing) (the default: everything)
 # Debian bookworm (root): Mesa 25 comes from bookworm-backports (4-7x faster than bookworm's Mesa 22).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -28,6 +30,12 @@ need_apt=()
 for p in "${pkgs[@]}"; do
   dpkg -s "$p" >/dev/null 2>&1 || need_apt+=("$p")
 done
+# The tests' SciPy cross-check runs in a virtual environment (below): python3 with its venv module (Debian
+# ships ensurepip, which `python3 -m venv` needs, in python3-venv).
+if [ "$purpose" = test ]; then
+  command -v python3 >/dev/null || need_apt+=(python3)
+  python3 -c 'import venv, ensurepip' >/dev/null 2>&1 || need_apt+=(python3-venv)
+fi
 mesa_ok=0
 if dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null | grep -qE '^(2[5-9]|[3-9][0-9])\.'; then mesa_ok=1; fi
 
@@ -84,6 +92,20 @@ if [ ! -x web/node_modules/.bin/wasm-opt ] || [ web/package-lock.json -nt web/no
   npm ci --prefix web --no-audit --no-fund --loglevel=error
 fi
 if [ "$purpose" = test ]; then
+  # numpy + scipy for scripts/crosscheck_eval.py, in a virtual environment of their own: Debian's Python
+  # refuses `pip install` outside one (PEP 668). scripts/test.sh runs the cross-check with its python.
+  venv="${SILVR_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/silvr-venv}"
+  if ! "$venv/bin/python" -c 'import numpy, scipy' >/dev/null 2>&1; then
+    if [ -e "$venv" ] && [ ! -f "$venv/pyvenv.cfg" ]; then
+      echo "$venv exists and is not a virtual environment: move it away or set SILVR_VENV" >&2; exit 1
+    fi
+    clear=()
+    # A venv whose Python is gone (e.g. upgraded) is made again in place (it is ours: it has pyvenv.cfg).
+    if [ -f "$venv/pyvenv.cfg" ] && ! "$venv/bin/python" -c '' >/dev/null 2>&1; then clear=(--clear); fi
+    log "python3 -m venv $venv + pip install -r scripts/requirements-crosscheck.txt"
+    python3 -m venv "${clear[@]}" "$venv"
+    "$venv/bin/python" -m pip install --quiet -r scripts/requirements-crosscheck.txt
+  fi
   # WebGPU in Firefox needs ESR 141 or later (Debian's security updates carry 153).
   ffv=$(firefox-esr --version 2>/dev/null | grep -oE '[0-9]+' | head -1 || true)
   if [ -z "$ffv" ] || [ "$ffv" -lt 141 ]; then

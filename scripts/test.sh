@@ -64,7 +64,10 @@ cargo build --workspace --all-targets
 SILVR_TESTS_PREBUILT=1 cargo test --workspace 2>&1 | tee "$logs/cargo-test.log"
 
 echo "== evaluator cross-check against SciPy cKDTree (and scikit-image SSIM)"
-python3 scripts/crosscheck_eval.py
+# In the virtual environment scripts/setup.sh made (Debian's own Python refuses `pip install`, PEP 668).
+venv="${SILVR_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/silvr-venv}"
+[ -x "$venv/bin/python" ] || { echo "no Python environment at $venv: run scripts/setup.sh" >&2; exit 1; }
+"$venv/bin/python" scripts/crosscheck_eval.py
 
 # The browser tests compile silvr-core for wasm32 (through silvr-web and silvr-worker): that is also the
 # check that the engine has no native-only dependency in its wasm32 build.
