@@ -10,9 +10,17 @@ cd "$(dirname "$0")/.."
 export SILVR_REQUIRE_GPU=1
 # Prefer Vulkan (lavapipe or a real GPU); wgpu's GL path compiles shaders for minutes on llvmpipe.
 export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
-# The ci demo test leaves its reconstructions here for the studio's browser tests.
-export SILVR_STUDIO_FIXTURES="${SILVR_STUDIO_FIXTURES:-$PWD/target/studio-fixtures}"
-rm -rf "$SILVR_STUDIO_FIXTURES"
+# The ci demo test leaves its reconstructions here for the studio's browser tests. The script clears only
+# the folder it owns (target/studio-fixtures); a folder the user names instead is never deleted: it must be
+# empty or absent, so that no stale fixture from an earlier run is tested.
+own_fixtures="$PWD/target/studio-fixtures"
+export SILVR_STUDIO_FIXTURES="${SILVR_STUDIO_FIXTURES:-$own_fixtures}"
+if [ "$(realpath -m "$SILVR_STUDIO_FIXTURES")" = "$(realpath -m "$own_fixtures")" ]; then
+	rm -rf "$own_fixtures"
+elif [ -n "$(ls -A "$SILVR_STUDIO_FIXTURES" 2>/dev/null)" ]; then
+	echo "SILVR_STUDIO_FIXTURES=$SILVR_STUDIO_FIXTURES is not empty: empty it yourself or unset it (the script clears only $own_fixtures)" >&2
+	exit 1
+fi
 
 # Every test's output goes to target/test-logs too; tests that skip print `SKIP: <test>: <why>` (the Rust
 # tests through one helper, core/tests/common/skip.rs; node's test runner `# SKIP`), and the summary of them
