@@ -170,7 +170,61 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
         };
         eprintln!("[poses] {stage} {done}/{total} ({elapsed:.1} s{eta})");
     };
-    let result = poses::refine_poses(&frames, &load, &opts, &progress)?;
+    let mut result = poses::refine_poses(&frames, &load, &opts, &progress)?;
+    // Metric scale from the lidar where the dataset has lidar depth: SfM ranges against the returns at
+    // the same pixels (the prior's scale drifts; the lidar's does not).
+    let depth_of = |k: usize| -> Option<(u32, u32, Vec<u16>)> {
+        let rel = ns[present[k]].depth_file_path.as_ref()?;
+        let p = root_dir.join(rel);
+        let bytes = std::fs::read(&p).ok()?;
+        let (w, h, d) = dataset::decode_png16(&bytes, &p).ok()?;
+        Some((w, h, d))
+    };
+    let depths: Vec<Option<(u32, u32, Vec<u16>)>> = (0..frames.len()).map(depth_of).collect();
+    let range = |k: usize, uv: glam::DVec2| -> Option<f64> {
+        let (w, h, d) = depths[k].as_ref()?;
+        // The feature's pixel at full size; the nearest return within a pixel of it.
+        let full = (uv + 0.5) * f as f64 - 0.5;
+        let (x0, y0) = (full.x.round() as i64, full.y.round() as i64);
+        let mut best: Option<(f64, f64)> = None;
+        for dy in -1..=1i64 {
+            for dx in -1..=1i64 {
+                let (x, y) = (x0 + dx, y0 + dy);
+                if x < 0 || y < 0 || x >= *w as i64 || y >= *h as i64 {
+                    continue;
+                }
+                let v = d[(y as usize) * (*w as usize) + x as usize];
+                if v == 0 || v == silvr_core::lidar::images::SKY_DEPTH {
+                    continue;
+                }
+                let dist = ((x as f64 - full.x).powi(2) + (y as f64 - full.y).powi(2)).sqrt();
+                if best.is_none_or(|b| dist < b.0) {
+                    best = Some((dist, v as f64 / 256.0));
+                }
+            }
+        }
+        best.map(|b| b.1)
+    };
+    let scale = poses::lidar_scale(&result.poses, &result.points, &result.tracks, &range);
+    if let Some(s) = &scale {
+        if s.applied {
+            poses::rescale(&mut result.poses, &mut result.points, s.ratio);
+        }
+        if !a.quiet {
+            eprintln!(
+                "[poses] scale against the lidar: {:.4} ± {:.4} over {} returns at SfM points{}",
+                s.ratio,
+                s.std_error,
+                s.samples,
+                if s.applied {
+                    " (map rescaled to metric)"
+                } else {
+                    " (kept)"
+                }
+            );
+        }
+    }
+    result.report.lidar_scale = scale;
     let rep = &result.report;
 
     // Scores against exact poses, when given: the prior's and the refined.
