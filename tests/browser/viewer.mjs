@@ -64,6 +64,8 @@ export async function serve() {
       'latin1',
     ),
     '/data/not.ply': Buffer.from('<html><body>this is not a point cloud</body></html>'),
+    // A header whose error names the offending line: markup in a file must reach the page as text.
+    '/data/script-header.ply': Buffer.from(`ply\nformat ascii 1.0\nelement ${XSS_IMG}\nend_header\n`),
   };
   const server = createServer((req, res) => {
     const url = new URL(req.url, 'http://localhost');
@@ -110,6 +112,16 @@ function saveShots(tag, shots) {
   for (const [name, png] of Object.entries(shots)) writeFileSync(join(dir, `${name}.png`), png);
   return dir;
 }
+
+/**
+ * Script payloads for the hostile-link test: each sets `window.__pwned` if the page ever inserts it as
+ * HTML (an `<img>` whose `src` fails runs its `onerror` at once), or navigates to it. `XSS_IMG` has spaces
+ * (names and messages); `XSS_IMG_URL` none (a fetchable URL is printable ASCII without spaces).
+ */
+const XSS_IMG = '<img src=x onerror=window.__pwned=1>';
+const XSS_IMG_URL = '<img/src="x"/onerror="window.__pwned=1">';
+const XSS_ATTR = '"><img src=x onerror="window.__pwned=1">';
+const XSS_SCRIPT = '"><script>window.__pwned=1</script>';
 
 /**
  * `driver`: { name, launch() → browser handle, newPage(browser) → { page, log }, close(browser),
@@ -213,6 +225,21 @@ export function viewerSuite(driver) {
     const noErrors = (log) => {
       const errors = log.filter((l) => l.startsWith('[pageerror]'));
       assert.deepEqual(errors, [], log.join('\n'));
+    };
+    /**
+     * No payload ran or was parsed as markup: `window.__pwned` unset (after the time a failing `<img>` needs
+     * to fire `onerror`), no element carries an event-handler attribute or a script with a payload, and the
+     * page is where `path` opened it (a `javascript:` or `data:` link never navigated it).
+     */
+    const notPwned = async (page, path) => {
+      await new Promise((r) => setTimeout(r, 1000));
+      const found = await driver.evaluate(page, () => ({
+        pwned: typeof window.__pwned,
+        handlers: [...document.querySelectorAll('[onerror], [onload]')].map((e) => `${e.parentElement?.id || e.parentElement?.tagName}: ${e.outerHTML}`),
+        scripts: [...document.querySelectorAll('script')].filter((s) => s.textContent.includes('__pwned')).length,
+        at: location.pathname,
+      }));
+      assert.deepEqual(found, { pwned: 'undefined', handlers: [], scripts: 0, at: new URL(path, server.base).pathname });
     };
 
     test('?url= opens the ci demo cloud; the default threshold keeps what the native filter kept', async () => {
@@ -341,8 +368,8 @@ export function viewerSuite(driver) {
 
     test('hostile and broken sources each show an error and leave the studio usable', async () => {
       const srcs = [
-        'javascript:alert(1)',
-        'data:text/plain,hello',
+        'javascript:window.__pwned=1',
+        `data:text/html,${XSS_SCRIPT}`,
         `${server.base}/data/missing.ply`,
         `${server.base}/data/truncated.ply`,
         `${server.base}/data/huge.ply`,
@@ -359,9 +386,61 @@ export function viewerSuite(driver) {
       assert.match(m, /huge\.ply: /);
       assert.match(m, /not\.ply: /);
       assert.equal(await driver.evaluate(page, () => document.querySelectorAll('#layers li').length), 0);
-      // Still usable: a good source opens afterwards, the page did not navigate, no script ran.
+      // Still usable: the page did not navigate, no script ran.
       assert.equal(await driver.evaluate(page, () => document.body.dataset.state), 'ready');
-      assert.equal(await driver.evaluate(page, () => typeof window.__pwned), 'undefined');
+      await notPwned(page, path);
+      noErrors(log);
+      await page.close();
+    });
+
+    test('markup in links, file names and file contents is shown as text and never runs', async () => {
+      // Each payload reaches a place the page shows: the `?url=` messages echo the link, a source's error
+      // names its URL, a PLY header error quotes the line, a hash field's note names it, a dropped file's
+      // name is a layer's label or its error, a submap's name is the training card's status.
+      const missing = `${server.base}/data/${XSS_IMG_URL}.ply`;
+      const path =
+        `/?url=${enc('javascript:window.__pwned=1')}&url=${enc(`data:text/html,${XSS_IMG}`)}` +
+        `#src=${enc(`data:text/html,${XSS_SCRIPT}`)}&src=${enc(missing)}&src=${enc(`${server.base}/data/script-header.ply`)}` +
+        `&t=${enc(XSS_ATTR)}&colour=${enc(XSS_SCRIPT)}`;
+      const { page, log } = await open(path);
+      const texts = (sel) => driver.evaluate(page, (sel) => [...document.querySelectorAll(sel)].map((l) => l.textContent).join('\n'), sel);
+      await driver.waitFor(page, () => document.querySelectorAll('#view-messages li').length >= 7, null, STEP_TIMEOUT_MS);
+      const m = await texts('#view-messages li');
+      // Dropped files: one opens as a layer under its hostile name, one fails and is named in the error;
+      // a submap with a hostile name is chosen for training.
+      const b64 = readFileSync(join(FIXTURES, 'points.ply')).toString('base64');
+      await driver.evaluate(page, ([b64, good, bad]) => {
+        const bin = atob(b64);
+        const data = new Uint8Array(bin.length);
+        for (let i = 0; i < bin.length; i++) data[i] = bin.charCodeAt(i);
+        const drop = (zone, files) => {
+          const dt = new DataTransfer();
+          for (const f of files) dt.items.add(f);
+          for (const type of ['dragenter', 'dragover', 'drop']) {
+            zone.dispatchEvent(new DragEvent(type, { dataTransfer: dt, bubbles: true, cancelable: true }));
+          }
+        };
+        drop(document.querySelector('#drop'), [new File([data], good), new File([bad], bad)]);
+        drop(document.querySelector('#train-card'), [new File([bad], bad.replace(/\.ply$/, '.tar'))]);
+      }, [b64, `${XSS_IMG}.ply`, `${XSS_ATTR}.ply`]);
+      await layersLoaded(page, 1);
+      await driver.waitFor(page, () => document.querySelectorAll('#view-messages li').length >= 8, null, STEP_TIMEOUT_MS);
+      await driver.waitFor(page, () => /Chosen:/.test(document.querySelector('#train-status').textContent), null, 30_000);
+      // Nothing ran; then each payload is on the page, as the text it was.
+      await notPwned(page, path);
+      assert.ok(m.includes('javascript:window.__pwned=1: not an http(s) URL'), m);
+      assert.ok(m.includes(`data:text/html,${XSS_IMG}: not an http(s) URL`), m);
+      assert.ok(m.includes(`${missing}: the server answered HTTP 404`), m);
+      assert.ok(m.includes(`got 'element ${XSS_IMG}'`), m);
+      assert.match(m, /'src' is not an http\(s\) URL/);
+      assert.match(m, /'t' must be a finite number/);
+      assert.match(m, /'colour' is not a colour mode/);
+      const dropped = await texts('#view-messages li');
+      assert.ok(dropped.includes(`${XSS_ATTR}.ply: `), dropped);
+      const label = await texts('#layers li');
+      assert.ok(label.startsWith(`${XSS_IMG}.ply — `), label);
+      const chosen = await texts('#train-status');
+      assert.ok(chosen.includes(`Chosen: ${XSS_ATTR}.tar`), chosen);
       noErrors(log);
       await page.close();
     });
