@@ -29,12 +29,26 @@ const QUALITY_STEPS = 150;
 const BROWSER_RUN = qualityRun(QUALITY_STEPS);
 /** Runs that test a path (faults, resuming), not quality: short, and nothing after training but the checkpoint. */
 const PATH_RUN = 'rays=256&model=tiny&downscale=2&export=0&uncertainty=0&view-every=0&views=0&mode=silvr';
-/** Held-out PSNR of the browser run within this of the native WGSL run (dB; the issue's bound). */
-const PSNR_TOLERANCE_DB = 0.5;
+// Tolerances of the quality run against the native WGSL run, ~4× the worst disagreement measured
+// (2026-12-04, 2-core CPU machine, wgpu on Mesa lavapipe natively): the browser runs are not bit-exact (nor
+// are native runs of the same seed), so the fixture that tests/tests/submap.rs writes is one draw of a
+// native run. Measured |browser − native| over 6 runs each in Chromium 156 / SwiftShader and Firefox ESR 153 /
+// lavapipe, and |native − native| over 3 more native runs (the fixture is re-made on every CI run):
+//                    Chromium     Firefox      native       worst     tolerance
+//   held-out PSNR    ≤ 0.0016 dB  ≤ 0.0012 dB  ≤ 0.0017 dB  0.0017    0.008 dB
+//   exported points  ≤ 0.61 %     ≤ 1.09 %     ≤ 1.34 %     1.34 %    5 %
+//   log10-std Q1–Q3  ≤ 0.034      ≤ 0.027      ≤ 0.046      0.046     0.15 decades
+// A run 10 steps short (140 of 150) misses all three (0.060 dB, 29 %, 0.28 decades); the old bounds
+// (0.5 dB, 25 %, 0.6 decades) passed its PSNR and quartiles. The quartiles compare two read-outs of the
+// same definition, so a change of the read-out's units (both sides) leaves their agreement as it is.
+// Also measured, against the same bounds: the fox run (vision-only) agrees within 0.0001 dB in both
+// browsers, and the native checkpoint continued 10 steps in the browser gains 0.009 dB.
+/** Held-out PSNR of the browser run within this of the native WGSL run (dB). */
+const PSNR_TOLERANCE_DB = 0.008;
 /** Exported points within this fraction of the native count (accumulation ≥ 0.98 is a sharp cut). */
-const POINTS_TOLERANCE = 0.25;
+const POINTS_TOLERANCE = 0.05;
 /** log10-std quartiles (25, 50, 75 %) within this many decades of the native run's. */
-const QUANTILE_TOLERANCE = 0.6;
+const QUANTILE_TOLERANCE = 0.15;
 
 export function trainSuite(driver) {
   const ready = existsSync(join(ROOT, 'dist', 'index.html')) && existsSync(join(FIXTURES, 'micro.tar')) && existsSync(SILVR);
@@ -118,6 +132,15 @@ export function trainSuite(driver) {
           `(native WGSL ${native.train_rays_per_s.toFixed(0)}); held-out PSNR ${r.heldout_psnr.toFixed(2)} dB ` +
           `(native ${nativePsnr.toFixed(2)}); ${r.points} points (native ${native.points_count}); log-std quantiles ` +
           `${r.log_std_quantiles.map((q) => q.toFixed(2)).join(' ')} (native ${native.log_std_quantiles.map((q) => q.toFixed(2)).join(' ')})`,
+      );
+      // The agreement the tolerances below are set from.
+      const dPsnr = Math.abs(r.heldout_psnr - nativePsnr);
+      const dPoints = Math.abs(r.points - native.points_count) / native.points_count;
+      const dQuartiles = [1, 2, 3].map((k) => Math.abs(r.log_std_quantiles[k] - native.log_std_quantiles[k]));
+      console.log(
+        `${driver.name} vs native: |Δ PSNR| ${dPsnr.toFixed(4)} dB (tolerance ${PSNR_TOLERANCE_DB}), |Δ points| ` +
+          `${(100 * dPoints).toFixed(2)} % (tolerance ${100 * POINTS_TOLERANCE} %), |Δ log-std quartiles| ` +
+          `${dQuartiles.map((d) => d.toFixed(4)).join(' ')} decades (tolerance ${QUANTILE_TOLERANCE})`,
       );
       assert.equal(r.backend, 'wgpu');
       assert.ok(Math.abs(r.heldout_psnr - nativePsnr) <= PSNR_TOLERANCE_DB, `held-out PSNR ${r.heldout_psnr} vs native ${nativePsnr}`);
@@ -218,9 +241,9 @@ export function trainSuite(driver) {
       assert.equal(s2.firstStep, '151');
       const r = JSON.parse(await driver.evaluate(p2, () => document.querySelector('#train-result').dataset.result));
       assert.equal(r.steps, 160);
-      // Ten more steps from the native field: as good as the native run (0.5 dB of noise).
+      // Ten more steps from the native field: as good as the native run, within the runs' noise.
       assert.ok(r.heldout_psnr > native.heldout_psnr_mean - PSNR_TOLERANCE_DB, `${r.heldout_psnr} dB after continuing the native ${native.heldout_psnr_mean} dB`);
-      console.log(`${driver.name}: resumed at step ${saved + 1} after a reload; the native checkpoint continued to step 160: held-out PSNR ${r.heldout_psnr.toFixed(2)} dB (native at 150: ${native.heldout_psnr_mean.toFixed(2)})`);
+      console.log(`${driver.name}: resumed at step ${saved + 1} after a reload; the native checkpoint continued to step 160: held-out PSNR ${r.heldout_psnr.toFixed(4)} dB (native at 150: ${native.heldout_psnr_mean.toFixed(4)})`);
       for (const l of [log, log2]) {
         assert.deepEqual(l.filter((x) => x.startsWith('[pageerror]')), [], l.join('\n'));
       }
@@ -285,7 +308,7 @@ export function trainSuite(driver) {
       const s = await status(page);
       assert.equal(s.state, 'done', await driver.evaluate(page, () => document.querySelector('#train-error').textContent));
       const r = JSON.parse(await driver.evaluate(page, () => document.querySelector('#train-result').dataset.result));
-      console.log(`${driver.name}: fox (camera only) trained vision-only: held-out PSNR ${r.heldout_psnr.toFixed(2)} dB (native ${native.heldout_psnr_mean.toFixed(2)})`);
+      console.log(`${driver.name}: fox (camera only) trained vision-only: held-out PSNR ${r.heldout_psnr.toFixed(4)} dB (native ${native.heldout_psnr_mean.toFixed(4)})`);
       assert.ok(Math.abs(r.heldout_psnr - native.heldout_psnr_mean) <= PSNR_TOLERANCE_DB, `${r.heldout_psnr} vs native ${native.heldout_psnr_mean}`);
       assert.equal(r.mode, 'vision');
       assert.deepEqual(log.filter((x) => x.startsWith('[pageerror]')), [], log.join('\n'));
