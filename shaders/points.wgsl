@@ -13,7 +13,8 @@ struct View {
     viewport: vec4<f32>,
     // The layer's colour in `solid` mode (linear RGB, alpha unused).
     solid: vec4<f32>,
-    // x, y: the colour map's range (value at blue, value at red); z: filter threshold; w: unused.
+    // x, y: the colour map's range (value at blue, value at red); z: filter threshold; w: values at or
+    // above it are "unconstrained" (an uncertainty that reads its prior), drawn apart from the map.
     range: vec4<f32>,
     // x: colour mode (0 RGB, 1 colour map, 2 solid); y: filter on; z: round points; w: unused.
     mode: vec4<u32>,
@@ -44,8 +45,10 @@ fn turbo(t_in: f32) -> vec3<f32> {
     ), vec3<f32>(0.0), vec3<f32>(1.0));
 }
 
-// Grey for points whose scalar is missing or not finite.
+// Grey for points whose scalar is missing or not finite (`viewer::NO_VALUE_COLOUR`).
 const NO_VALUE: vec3<f32> = vec3<f32>(0.45, 0.45, 0.45);
+// Lilac for values at or above `range.w` (`viewer::UNCONSTRAINED_COLOUR`).
+const UNCONSTRAINED: vec3<f32> = vec3<f32>(0.85, 0.78, 0.95);
 
 @vertex
 fn vs(
@@ -77,6 +80,8 @@ fn vs(
         case 1u: {
             if (non_finite(value)) {
                 out.colour = NO_VALUE;
+            } else if (value >= view.range.w) {
+                out.colour = UNCONSTRAINED;
             } else {
                 let span = view.range.y - view.range.x;
                 var t = 0.5;

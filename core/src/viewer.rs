@@ -22,6 +22,26 @@ pub const UNCERTAINTY_FIELDS: [&str; 3] = ["log_std_combined", "log_std_colour",
 /// The evaluator's per-point distance to ground truth (`silvr eval --error-ply`), metres.
 pub const ERROR_FIELD: &str = "error_m";
 
+/// Colour of a value the map marks as beyond meaning (an uncertainty that reads its prior:
+/// "unconstrained"), apart from Turbo's range and from the grey of a missing value.
+pub const UNCONSTRAINED_COLOUR: [f32; 3] = [0.85, 0.78, 0.95];
+/// Colour of a missing or non-finite value.
+pub const NO_VALUE_COLOUR: [f32; 3] = [0.45, 0.45, 0.45];
+
+/// CPU reference of the shader's colour map: NaN grey, `value ≥ above` [`UNCONSTRAINED_COLOUR`], else
+/// Turbo over `lo..hi`.
+pub fn map_colour(value: f32, lo: f32, hi: f32, above: f32) -> [f32; 3] {
+    if !value.is_finite() {
+        NO_VALUE_COLOUR
+    } else if value >= above {
+        UNCONSTRAINED_COLOUR
+    } else if hi != lo {
+        turbo((value - lo) / (hi - lo))
+    } else {
+        turbo(0.5)
+    }
+}
+
 /// Google's Turbo colour map (polynomial approximation; the WGSL uses the same coefficients): `t` in
 /// [0, 1] (clamped) → RGB, clamped to [0, 1] (the polynomial dips just below 0 at the red end).
 pub fn turbo(t: f32) -> [f32; 3] {
@@ -76,6 +96,23 @@ impl Scalar {
         };
         (!finite.is_empty())
             .then(|| finite[((finite.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize])
+    }
+
+    /// The value at quantile `q` of the finite values below `limit` (nearest rank), if any: the colour
+    /// map's range without the values it marks apart (`map_colour`'s `above`).
+    pub fn quantile_below(&self, q: f64, limit: f32) -> Option<f32> {
+        let lo = self.sorted.partition_point(|v| *v == f32::NEG_INFINITY);
+        let hi = self
+            .sorted
+            .partition_point(|v| *v < f32::INFINITY && *v < limit);
+        let finite = &self.sorted[lo..hi.max(lo)];
+        (!finite.is_empty())
+            .then(|| finite[((finite.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize])
+    }
+
+    /// How many values are at or above `limit` (NaN never is).
+    pub fn at_least(&self, limit: f32) -> usize {
+        self.sorted.len() - self.sorted.partition_point(|v| *v < limit)
     }
 
     /// Smallest and largest finite value.
@@ -227,8 +264,14 @@ fn robust_box(keep: &[usize], positions: &[DVec3]) -> Option<(DVec3, DVec3)> {
 pub enum Colouring {
     /// The file's RGB (grey where it has none).
     Rgb,
-    /// Scalar `index` of the layer through [`turbo`], `lo` at blue and `hi` at red.
-    Map { index: usize, lo: f32, hi: f32 },
+    /// Scalar `index` of the layer through [`turbo`], `lo` at blue and `hi` at red; values at or above
+    /// `above` in [`UNCONSTRAINED_COLOUR`] (`f32::INFINITY`: none) — see [`map_colour`].
+    Map {
+        index: usize,
+        lo: f32,
+        hi: f32,
+        above: f32,
+    },
     /// One colour for the whole layer (RGB in [0, 1]).
     Solid([f32; 3]),
 }
@@ -575,10 +618,10 @@ const UNIFORM_BYTES: usize = 64 + 5 * 16;
 fn view_uniform(frame: &Frame, d: &LayerDraw<'_>) -> [u8; UNIFORM_BYTES] {
     let offset = (d.layer.origin - frame.reference).as_vec3();
     let (w, h) = (frame.width.max(1) as f32, frame.height.max(1) as f32);
-    let (mode, solid, lo, hi) = match d.colouring {
-        Colouring::Rgb => (0u32, [0.0; 3], 0.0, 1.0),
-        Colouring::Map { lo, hi, .. } => (1, [0.0; 3], lo, hi),
-        Colouring::Solid(c) => (2, c, 0.0, 1.0),
+    let (mode, solid, lo, hi, above) = match d.colouring {
+        Colouring::Rgb => (0u32, [0.0; 3], 0.0, 1.0, f32::INFINITY),
+        Colouring::Map { lo, hi, above, .. } => (1, [0.0; 3], lo, hi, above),
+        Colouring::Solid(c) => (2, c, 0.0, 1.0, f32::INFINITY),
     };
     let layer_has = |i: usize| d.layer.chunks.first().is_none_or(|c| i < c.scalars.len());
     let mode =
@@ -596,7 +639,9 @@ fn view_uniform(frame: &Frame, d: &LayerDraw<'_>) -> [u8; UNIFORM_BYTES] {
     f[16..20].copy_from_slice(&[offset.x, offset.y, offset.z, frame.point_size.max(0.5)]);
     f[20..24].copy_from_slice(&[w, h, 1.0 / w, 1.0 / h]);
     f[24..28].copy_from_slice(&[solid[0], solid[1], solid[2], 1.0]);
-    f[28..32].copy_from_slice(&[lo, hi, threshold, 0.0]);
+    // NaN would compare false everywhere: "no such value" is +∞.
+    let above = if above.is_nan() { f32::INFINITY } else { above };
+    f[28..32].copy_from_slice(&[lo, hi, threshold, above]);
     let mut out = [0u8; UNIFORM_BYTES];
     out[..128].copy_from_slice(bytemuck::cast_slice(&f));
     let m = [mode, filter_on, frame.round as u32, 0];

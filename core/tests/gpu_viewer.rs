@@ -11,7 +11,7 @@ use silvr_core::gpu::{wgpu, Gpu};
 use silvr_core::pointcloud::PointCloud;
 use silvr_core::uncertainty::filter::{default_threshold, keeps};
 use silvr_core::viewer::{
-    project, turbo, Colouring, Frame, LayerDraw, PointRenderer, ViewCloud, DEPTH_FORMAT,
+    map_colour, project, Colouring, Frame, LayerDraw, PointRenderer, ViewCloud, DEPTH_FORMAT,
 };
 
 mod common;
@@ -177,9 +177,22 @@ fn points_land_where_the_cpu_reference_puts_them_in_every_colour_mode() {
     assert!(pts.len() >= 8, "only {} isolated points", pts.len());
     let s = vc.scalar("log_std_combined").unwrap();
     let (lo, hi) = s.range().unwrap();
+    // The upper third of the values as "unconstrained".
+    let above = s.quantile(0.67).unwrap();
     for colouring in [
         Colouring::Rgb,
-        Colouring::Map { index: 0, lo, hi },
+        Colouring::Map {
+            index: 0,
+            lo,
+            hi,
+            above: f32::INFINITY,
+        },
+        Colouring::Map {
+            index: 0,
+            lo,
+            hi,
+            above,
+        },
         Colouring::Solid([0.2, 0.9, 0.4]),
     ] {
         let px = render(
@@ -202,8 +215,7 @@ fn points_land_where_the_cpu_reference_puts_them_in_every_colour_mode() {
                         b[2] as f32 / 255.0,
                     ]
                 }
-                Colouring::Map { .. } if s.values[i].is_nan() => [0.45, 0.45, 0.45],
-                Colouring::Map { lo, hi, .. } => turbo((s.values[i] - lo) / (hi - lo)),
+                Colouring::Map { lo, hi, above, .. } => map_colour(s.values[i], lo, hi, above),
                 Colouring::Solid(c) => c,
             };
             assert!(

@@ -262,6 +262,16 @@ export function viewerSuite(driver) {
       const d = await pixelDiff(page, rgb, unc);
       assert.ok(d > 0.01, `RGB and uncertainty colouring differ in ${(100 * d).toFixed(2)} % of the pixels`);
       assert.equal(await driver.evaluate(page, () => document.querySelector('#legend').hidden), false);
+      // σ in metres a user can read: the colour map spans the cloud's 1st-99th percentile of σ, which on a
+      // 20 m street whose points lie centimetres from the truth is within [1 mm, 10 m] (it was 5 m to
+      // 272 km when σ was BayesRays' per-ray read-out); the points that read the prior are counted apart.
+      const legend = await driver.evaluate(page, () => {
+        const l = document.querySelector('#legend');
+        return { lo: Number(l.dataset.lo), hi: Number(l.dataset.hi), unconstrained: l.dataset.unconstrained, text: l.textContent };
+      });
+      const [sLo, sHi] = [10 ** legend.lo, 10 ** legend.hi];
+      assert.ok(sLo >= 1e-3 && sHi <= 10 && sLo < sHi, `the legend spans σ ${sLo} m to ${sHi} m: ${legend.text}`);
+      assert.ok(legend.unconstrained !== undefined && /unconstrained/.test(legend.text), `no unconstrained count in the legend: ${legend.text}`);
       // Blank reference: everything hidden.
       await redraw(page, () => driver.evaluate(page, () => document.querySelector('#layers input[type=checkbox]').click()));
       const blank = await shot(page);

@@ -716,8 +716,9 @@ fn show_legend(v: &Shared) {
         el.set_attribute("hidden", "").ok();
         return;
     };
-    // The worker's colour range (2nd-98th percentiles over the visible layers), by the same function.
-    let (lo, hi) = scalar_range(b.layers.iter(), &b.state, field, |s| (s.p02, s.p98))
+    // The worker's colour range (1st-99th percentiles over the visible layers, unconstrained points
+    // apart), by the same function.
+    let (lo, hi) = scalar_range(b.layers.iter(), &b.state, field, |s| (s.p01, s.p99))
         .unwrap_or((f32::INFINITY, f32::NEG_INFINITY));
     while let Some(c) = el.first_child() {
         el.remove_child(&c).ok();
@@ -741,7 +742,7 @@ fn show_legend(v: &Shared) {
         })
         .collect();
     let title = if is_log_std(field) {
-        format!("{field}: posterior σ")
+        format!("{field}: posterior σ (metres, calibrated on held-out lidar)")
     } else {
         format!("{field}: distance to ground truth")
     };
@@ -764,6 +765,38 @@ fn show_legend(v: &Shared) {
     el.append_child(&ends).ok();
     el.set_attribute("data-lo", &lo.to_string()).ok();
     el.set_attribute("data-hi", &hi.to_string()).ok();
+    // Points that read the prior are not a large σ but no measurement at all: said apart, in their own
+    // colour (`viewer::UNCONSTRAINED_COLOUR`).
+    let (count, at) = b
+        .layers
+        .iter()
+        .filter(|l| !b.state.hidden.contains(&l.index))
+        .filter_map(|l| l.scalars.iter().find(|s| &s.name == field))
+        .fold((0u64, None), |(n, at), s| {
+            (n + s.unconstrained, at.or(s.unconstrained_at))
+        });
+    if let Some(at) = at {
+        let [r, g, bl] = silvr_core::viewer::UNCONSTRAINED_COLOUR.map(|c| (c * 255.0) as u8);
+        let row = text_el(&doc, "div", "unconstrained", "");
+        let swatch = text_el(&doc, "span", "swatch", "");
+        swatch
+            .set_attribute("style", &format!("background: rgb({r},{g},{bl})"))
+            .ok();
+        row.append_child(&swatch).ok();
+        row.append_child(&text_el(
+            &doc,
+            "span",
+            "",
+            &format!(
+                " unconstrained (σ ≥ {}, no observation beyond the prior): {count} points",
+                value_text(field, at as f64)
+            ),
+        ))
+        .ok();
+        el.append_child(&row).ok();
+        el.set_attribute("data-unconstrained", &count.to_string())
+            .ok();
+    }
 }
 
 fn show_layers(v: &Shared) {

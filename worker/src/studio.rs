@@ -36,9 +36,21 @@ pub struct ScalarInfo {
     /// Finite range; `None` when every value is NaN or infinite.
     pub min: Option<f32>,
     pub max: Option<f32>,
-    /// 2nd and 98th percentiles: the colour map's default range.
-    pub p02: Option<f32>,
-    pub p98: Option<f32>,
+    /// 1st and 99th percentiles of the values below `unconstrained_at`: the colour map's range.
+    pub p01: Option<f32>,
+    pub p99: Option<f32>,
+    /// For an uncertainty (`log_std_*`): the log-std from which a point reads its prior (σ ≥ σ_p/√2),
+    /// shown as "unconstrained" apart from the colour map; and how many points do.
+    pub unconstrained_at: Option<f32>,
+    pub unconstrained: u64,
+}
+
+/// Where a field's values stop meaning a measurement: for the uncertainty fields, the log-std of the
+/// prior's information (`silvr_core::uncertainty::unconstrained_log_std` of the 1 m prior).
+pub fn unconstrained_at(field: &str) -> Option<f32> {
+    UNCERTAINTY_FIELDS.contains(&field).then(|| {
+        silvr_core::uncertainty::unconstrained_log_std(silvr_core::uncertainty::PRIOR_SIGMA_M)
+    })
 }
 
 /// A layer, as the page shows it.
@@ -97,12 +109,18 @@ impl Layer {
         let scalars = view
             .scalars
             .iter()
-            .map(|s| ScalarInfo {
-                name: s.name.clone(),
-                min: s.quantile(0.0),
-                max: s.quantile(1.0),
-                p02: s.quantile(0.02),
-                p98: s.quantile(0.98),
+            .map(|s| {
+                let at = unconstrained_at(&s.name);
+                let below = at.unwrap_or(f32::INFINITY);
+                ScalarInfo {
+                    name: s.name.clone(),
+                    min: s.quantile(0.0),
+                    max: s.quantile(1.0),
+                    p01: s.quantile_below(0.01, below),
+                    p99: s.quantile_below(0.99, below),
+                    unconstrained_at: at,
+                    unconstrained: at.map_or(0, |a| s.at_least(a) as u64),
+                }
             })
             .collect();
         Layer {
@@ -312,7 +330,12 @@ impl Layers {
                     Colour::Layer => Colouring::Solid(solid),
                     Colour::Field(f) => match self.colour_range(view, f) {
                         Some((lo, hi)) => match l.cloud.scalars.iter().position(|s| &s.name == f) {
-                            Some(index) => Colouring::Map { index, lo, hi },
+                            Some(index) => Colouring::Map {
+                                index,
+                                lo,
+                                hi,
+                                above: unconstrained_at(f).unwrap_or(f32::INFINITY),
+                            },
                             None => Colouring::Solid([0.45, 0.45, 0.45]),
                         },
                         None => Colouring::Solid([0.45, 0.45, 0.45]),
@@ -335,7 +358,7 @@ impl Layers {
 
     /// The colour map's range of `field` (see [`scalar_range`]).
     pub fn colour_range(&self, view: &ViewState, field: &str) -> Option<(f32, f32)> {
-        scalar_range(self.infos(), view, field, |s| (s.p02, s.p98))
+        scalar_range(self.infos(), view, field, |s| (s.p01, s.p99))
     }
 
     /// The kept points of layer `index` as a PLY file (the native writer), with a file name.
