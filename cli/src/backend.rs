@@ -8,7 +8,7 @@ use silvr_core::train::Backend;
 
 /// `--backend`: `wgpu` forces the WGSL engine (on any adapter, lavapipe included), `cpu` the rayon
 /// reference; `auto` takes the WGSL engine on a hardware GPU and the CPU reference where the only adapter
-/// is a software one (lavapipe runs the same kernels ~10x slower than the CPU reference).
+/// is a software one (on lavapipe a WGSL training step takes ~1.8x the CPU reference's, BENCHMARKS.md).
 pub fn backend_for(backend: &str) -> Result<(Backend, String)> {
     backend_with(backend, GpuOptions::default())
 }

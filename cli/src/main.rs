@@ -49,7 +49,8 @@ enum Command {
     },
     /// Generate the built-in synthetic world as a dataset (images, lidar, ground truth).
     Synth {
-        /// `ci` (small, seconds) or `default` (720x540, 64 beams, 120 keyframes).
+        /// `ci` (small, seconds), `micro` (the parity tests' 180x135 street) or `default` (720x540, 64
+        /// beams, 120 keyframes).
         #[arg(long, default_value = "ci")]
         preset: String,
         #[arg(long, default_value_t = 1)]
@@ -1109,7 +1110,8 @@ fn demo(
     };
     let poses_s = t.elapsed().as_secs_f64();
     // What the fields train on, and the Sim(3) that maps their frame onto the exact one for scoring
-    // (the poses stage aligns its output to the prior, so it inherits the prior's scale drift).
+    // (the poses stage aligns its output to the prior's frame, then rescales it to the lidar's metric
+    // scale: what remains is the prior's frame and a small scale residual).
     let (train_on, alignment) = match overrides.poses.as_str() {
         "exact" => (dataset.clone(), None),
         which => {
