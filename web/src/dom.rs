@@ -10,6 +10,13 @@ pub fn document() -> web_sys::Document {
         .expect("the studio runs in a page with a document")
 }
 
+/// The `silvr serve` access token in the page's query (`?token=`), for the worker's fetches of this
+/// origin; the query is kept when the hash is rewritten, and share links leave the token out.
+pub fn page_token() -> Option<String> {
+    let search = web_sys::window()?.location().search().ok()?;
+    silvr_worker::view::query_token(&search)
+}
+
 pub fn by_id(doc: &web_sys::Document, id: &str) -> Option<Element> {
     doc.get_element_by_id(id)
 }

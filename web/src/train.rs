@@ -450,6 +450,7 @@ fn start_run(url: Option<String>) {
                 id,
                 url,
                 settings: s,
+                token: crate::dom::page_token(),
             });
         }
         None => {

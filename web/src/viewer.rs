@@ -2,7 +2,8 @@
 //!
 //! The page owns the view state ([`ViewState`], defined once in the worker crate with its link codec)
 //! and the camera controls; on every change it sends the state to the worker (at most once per animation
-//! frame) and rewrites the URL hash, so the address bar is always the share link. The worker parses the
+//! frame) and rewrites the URL hash (keeping the query), so the address bar is always the share link —
+//! but for `silvr serve`'s `?token=`, which the "Share link" button leaves out. The worker parses the
 //! files, keeps the layers on its device and answers with layer descriptions, filter counts and frames.
 //!
 //! Test hooks: `#view[data-view-matrix]` (the camera's view-projection, comma-separated), `#view
@@ -25,7 +26,7 @@ use web_sys::{
     KeyboardEvent, PointerEvent, WheelEvent, Worker,
 };
 
-use crate::dom::{by_id, document, listen, text_el};
+use crate::dom::{by_id, document, listen, page_token, text_el};
 use crate::protocol::group_digits;
 
 /// Steps of the threshold slider between the filter field's smallest and largest value.
@@ -112,6 +113,7 @@ pub fn start(worker: &Worker) {
             &silvr_worker::FromPage::OpenUrl {
                 id: i as u32,
                 url: url.clone(),
+                token: page_token(),
             },
         );
     }
@@ -182,6 +184,7 @@ pub fn restart(worker: &Worker) {
             &silvr_worker::FromPage::OpenUrl {
                 id: i as u32,
                 url: url.clone(),
+                token: page_token(),
             },
         );
     }
@@ -463,9 +466,12 @@ fn schedule_hash(v: &Shared) {
         let hash = v2.borrow().state.to_hash();
         if let Some(w) = web_sys::window() {
             if let Ok(h) = w.history() {
+                // The query stays: `?token=` (a reload must still reach the data), `?url=`, `?train=`.
+                let loc = w.location();
                 let url = format!(
-                    "{}{}",
-                    w.location().pathname().unwrap_or_else(|_| "/".into()),
+                    "{}{}{}",
+                    loc.pathname().unwrap_or_else(|_| "/".into()),
+                    loc.search().unwrap_or_default(),
                     hash
                 );
                 let _ = h.replace_state_with_url(&JsValue::NULL, "", Some(&url));
@@ -1053,10 +1059,19 @@ fn share(v: &Shared) {
         .ok();
         return;
     }
-    let href = web_sys::window()
-        .and_then(|w| w.location().href().ok())
+    // The page's address without its access token: a shared link must not hand out the key (whoever
+    // receives it and may read the data has a token of their own).
+    let base = web_sys::window()
+        .map(|w| {
+            let loc = w.location();
+            format!(
+                "{}{}{}",
+                loc.origin().unwrap_or_default(),
+                loc.pathname().unwrap_or_default(),
+                silvr_worker::view::query_without_token(&loc.search().unwrap_or_default())
+            )
+        })
         .unwrap_or_default();
-    let base = href.split('#').next().unwrap_or("").to_string();
     let link = format!("{base}{}", b.state.to_hash());
     out.set_attribute("data-shareable", "true").ok();
     out.set_attribute("data-link", &link).ok();

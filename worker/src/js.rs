@@ -7,6 +7,7 @@ use wasm_bindgen::JsCast;
 use web_sys::DedicatedWorkerGlobalScope;
 
 use crate::studio::MAX_FILE_BYTES;
+use crate::view::TOKEN_HEADER;
 use crate::ToPage;
 
 pub(crate) fn get(obj: &JsValue, key: &str) -> JsValue {
@@ -128,11 +129,37 @@ pub(crate) fn url_file_name(url: &str, default: &str) -> String {
         .to_string()
 }
 
-/// Fetches an http(s) URL into memory (progress reported under `id`, at most [`MAX_FILE_BYTES`]); the
-/// error is a sentence for the user.
-pub(crate) async fn fetch_bytes(url: &str, id: u32) -> Result<Vec<u8>, String> {
+/// Whether `url` is on this worker's origin (the page's: the worker is loaded from it), by the browser's
+/// own URL parser, the one fetch uses.
+fn same_origin(url: &str) -> bool {
     let scope: web_sys::WorkerGlobalScope = js_sys::global().unchecked_into();
-    let response = match wasm_bindgen_futures::JsFuture::from(scope.fetch_with_str(url)).await {
+    web_sys::Url::new(url).is_ok_and(|u| u.origin() == scope.location().origin())
+}
+
+/// Fetches an http(s) URL into memory (progress reported under `id`, at most [`MAX_FILE_BYTES`]); the
+/// error is a sentence for the user. `token`, the page's access token, goes along as [`TOKEN_HEADER`]
+/// only when `url` is on the page's own origin (a `silvr serve` on the network); then a redirect is an
+/// error, so the header cannot follow one elsewhere.
+pub(crate) async fn fetch_bytes(
+    url: &str,
+    id: u32,
+    token: Option<&str>,
+) -> Result<Vec<u8>, String> {
+    let scope: web_sys::WorkerGlobalScope = js_sys::global().unchecked_into();
+    let request = match token.filter(|_| same_origin(url)) {
+        Some(token) => {
+            let headers = web_sys::Headers::new().map_err(|e| js_text(&e))?;
+            headers
+                .set(TOKEN_HEADER, token)
+                .map_err(|e| format!("the access token cannot be sent: {}", js_text(&e)))?;
+            let init = web_sys::RequestInit::new();
+            init.set_headers(&headers);
+            init.set_redirect(web_sys::RequestRedirect::Error);
+            scope.fetch_with_str_and_init(url, &init)
+        }
+        None => scope.fetch_with_str(url),
+    };
+    let response = match wasm_bindgen_futures::JsFuture::from(request).await {
         Ok(r) => r.unchecked_into::<web_sys::Response>(),
         Err(e) => {
             return Err(format!(
@@ -142,8 +169,18 @@ pub(crate) async fn fetch_bytes(url: &str, id: u32) -> Result<Vec<u8>, String> {
         }
     };
     if !response.ok() {
+        // `silvr serve` off loopback without (the right) key: say what the key is.
+        let hint = if response.status() == 401 && same_origin(url) {
+            if token.is_some() {
+                ": the link's access token (?token=) is not this server's (was it restarted?)"
+            } else {
+                ": this server wants its access token; open the full link silvr serve printed (with ?token=)"
+            }
+        } else {
+            ""
+        };
         return Err(format!(
-            "the server answered HTTP {} {}",
+            "the server answered HTTP {} {}{hint}",
             response.status(),
             response.status_text()
         ));

@@ -11,7 +11,7 @@
 //! | page → worker | `{type: "run-check", id?, n?, seed?}`: run the projection self-check again |
 //! | page → worker | `{type: "canvas", canvas: OffscreenCanvas, width, height}` (transferred): the view draws there |
 //! | page → worker | `{type: "resize", width, height}`, `{type: "view", view: ViewState}`: draw again |
-//! | page → worker | `{type: "open-url", id, url}`, `{type: "open-file", id, file: File}`: open a PLY as a layer |
+//! | page → worker | `{type: "open-url", id, url, token?}`, `{type: "open-file", id, file: File}`: open a PLY as a layer (`token`: the page's `?token=`, sent to the page's own origin only) |
 //! | page → worker | `{type: "download", id, layer, view}`: the layer's kept points as PLY; `{type: "bench", id, frames}` |
 //! | worker → page | `{type: "progress", id, source, stage, loaded, total}` while a file streams in |
 //! | worker → page | `{type: "layer", id, layer: LayerInfo}`, `{type: "load-error", id, source, message}` |
@@ -242,7 +242,14 @@ pub enum FromPage {
         seq: u32,
     },
     /// Fetch a PLY over http(s) and open it as a layer.
-    OpenUrl { id: u32, url: String },
+    OpenUrl {
+        id: u32,
+        url: String,
+        /// The page's access token (`?token=`, see [`view::TOKEN_HEADER`]): sent with the fetch when
+        /// `url` is on the page's own origin, never to another.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        token: Option<String>,
+    },
     /// The kept points of layer `layer` under `view` as PLY bytes.
     Download {
         id: u32,
@@ -261,6 +268,9 @@ pub enum FromPage {
         id: u32,
         url: String,
         settings: TrainSettings,
+        /// As in [`FromPage::OpenUrl`].
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        token: Option<String>,
     },
     /// `pause`, `resume` or `stop` (stop still renders, exports and runs the uncertainty pass).
     TrainControl { action: TrainAction },
@@ -513,6 +523,30 @@ mod tests {
             }
         );
         assert!(serde_json::from_str::<FromPage>(r#"{"type":"bogus"}"#).is_err());
+    }
+
+    #[test]
+    fn the_token_travels_only_when_the_page_has_one() {
+        let m: FromPage =
+            serde_json::from_str(r#"{"type":"open-url","id":1,"url":"http://h/data/a.ply"}"#)
+                .unwrap();
+        assert_eq!(
+            m,
+            FromPage::OpenUrl {
+                id: 1,
+                url: "http://h/data/a.ply".into(),
+                token: None
+            }
+        );
+        assert!(serde_json::to_value(&m).unwrap().get("token").is_none());
+        let m = FromPage::OpenUrl {
+            id: 1,
+            url: "http://h/data/a.ply".into(),
+            token: Some("k".into()),
+        };
+        let v = serde_json::to_value(&m).unwrap();
+        assert_eq!(v["token"], "k");
+        assert_eq!(serde_json::from_value::<FromPage>(v).unwrap(), m);
     }
 
     #[test]

@@ -165,13 +165,20 @@ pub(crate) async fn train_files(
     run(host, id, out, settings, resume).await
 }
 
-/// A dataset archive fetched over http(s) → a training run.
-pub(crate) async fn train_url(host: Host, id: u32, url: String, settings: TrainSettings) {
+/// A dataset archive fetched over http(s) → a training run (`token`: the page's access token, see
+/// [`fetch_bytes`]).
+pub(crate) async fn train_url(
+    host: Host,
+    id: u32,
+    url: String,
+    settings: TrainSettings,
+    token: Option<String>,
+) {
     if !is_fetchable(&url) {
         return fail(&url, "only http: and https: URLs are opened");
     }
     state("loading");
-    let bytes = match fetch_bytes(&url, id).await {
+    let bytes = match fetch_bytes(&url, id, token.as_deref()).await {
         Ok(b) => b,
         Err(e) => return fail(&url, e),
     };

@@ -10,6 +10,11 @@
 //! `cam` angles are degrees (yaw from +x towards +y, pitch up from the horizon, vertical field of view),
 //! `dist` metres from the orbit target; `t` is the threshold (log10 std, metres) — absent means the
 //! default rule (Tukey's fence), as in the native `points_filtered.ply`.
+//!
+//! The access token of a `silvr serve` on the network travels in the page's query, never in the hash:
+//! `http://host:port/?token=…#src=…`. The page keeps the query when it rewrites the hash, passes the
+//! token to the worker (which sends it as [`TOKEN_HEADER`] to the page's own origin only), and leaves it
+//! out of the share links it hands out ([`query_without_token`]).
 
 use glam::{DVec3, Mat4};
 use serde::{Deserialize, Serialize};
@@ -21,6 +26,12 @@ pub const MAX_HASH_BYTES: usize = 32 * 1024;
 pub const MAX_SOURCES: usize = 16;
 /// Longest source URL.
 pub const MAX_URL_BYTES: usize = 2048;
+/// Longest access token read from a page's query.
+pub const MAX_TOKEN_BYTES: usize = 256;
+/// The query parameter of `silvr serve`'s access token.
+pub const TOKEN_PARAM: &str = "token";
+/// The request header the token travels in (`silvr serve` requires it for `/data/` off loopback).
+pub const TOKEN_HEADER: &str = "X-Silvr-Token";
 /// Point size range (pixels).
 pub const POINT_SIZE: (f32, f32) = (1.0, 32.0);
 
@@ -225,6 +236,35 @@ pub fn decode_bytes(s: &str) -> Option<Vec<u8>> {
 /// Percent-decoding; `None` on a bad escape or bytes that are not UTF-8.
 pub fn decode(s: &str) -> Option<String> {
     String::from_utf8(decode_bytes(s)?).ok()
+}
+
+/// The access token in a page's query (`location.search`, with or without its `?`): the first
+/// `token=` parameter, decoded, if it is a non-empty printable ASCII string of at most
+/// [`MAX_TOKEN_BYTES`] (anything else could not travel in a header).
+pub fn query_token(search: &str) -> Option<String> {
+    search
+        .trim_start_matches('?')
+        .split('&')
+        .find_map(|part| part.strip_prefix(TOKEN_PARAM)?.strip_prefix('='))
+        .and_then(decode)
+        .filter(|t| {
+            !t.is_empty() && t.len() <= MAX_TOKEN_BYTES && t.bytes().all(|b| b.is_ascii_graphic())
+        })
+}
+
+/// A page's query without its access token, as a share link keeps it: `?a=1&token=x&b=2` → `?a=1&b=2`,
+/// `""` when nothing is left.
+pub fn query_without_token(search: &str) -> String {
+    let kept: Vec<&str> = search
+        .trim_start_matches('?')
+        .split('&')
+        .filter(|p| !p.is_empty() && p.split('=').next() != Some(TOKEN_PARAM))
+        .collect();
+    if kept.is_empty() {
+        String::new()
+    } else {
+        format!("?{}", kept.join("&"))
+    }
 }
 
 fn numbers<const N: usize>(s: &str) -> Option<[f64; N]> {
@@ -518,5 +558,43 @@ mod tests {
         assert_eq!(c.target, [5.0, 10.0, 2.0]);
         let half = 0.5 * (10.0f64 * 10.0 + 400.0 + 16.0).sqrt();
         assert!(c.distance * (30f64.to_radians()).tan() > half);
+    }
+
+    #[test]
+    fn the_token_is_read_from_the_query_and_left_out_of_share_links() {
+        assert_eq!(query_token("?token=abc123").as_deref(), Some("abc123"));
+        assert_eq!(
+            query_token("train=x&token=a%2Db&token=second").as_deref(),
+            Some("a-b")
+        );
+        for none in [
+            "",
+            "?",
+            "?tokens=abc",
+            "?token",
+            "?token=",
+            "?token=%zz",
+            "?token=a%20b",
+            "?token=%0A",
+            "?xtoken=abc",
+        ] {
+            assert_eq!(query_token(none), None, "{none}");
+        }
+        assert_eq!(
+            query_token(&format!("?token={}", "a".repeat(MAX_TOKEN_BYTES + 1))),
+            None
+        );
+
+        assert_eq!(query_without_token("?token=abc"), "");
+        assert_eq!(query_without_token(""), "");
+        assert_eq!(
+            query_without_token("?url=x&token=abc&steps=3&token"),
+            "?url=x&steps=3"
+        );
+        assert_eq!(query_without_token("tokens=1&&a=2"), "?tokens=1&a=2");
+        // What a share link keeps never carries a token a page would read.
+        for q in ["?token=abc&a=1", "?a=1&token=abc", "?token&token=abc"] {
+            assert_eq!(query_token(&query_without_token(q)), None, "{q}");
+        }
     }
 }

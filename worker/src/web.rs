@@ -278,7 +278,9 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
             draw(studio);
             report_counts(studio);
         }
-        FromPage::OpenUrl { id, url } => spawn_local(open_url(studio.clone(), id, url)),
+        FromPage::OpenUrl { id, url, token } => {
+            spawn_local(open_url(studio.clone(), id, url, token))
+        }
         FromPage::Download { id, layer, view } => {
             let out = studio.borrow().layers.filtered_ply(&view, layer);
             match out {
@@ -287,11 +289,17 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
             }
         }
         FromPage::Bench { id, frames } => spawn_local(bench(studio.clone(), id, frames)),
-        FromPage::TrainUrl { id, url, settings } => spawn_local(crate::train::train_url(
+        FromPage::TrainUrl {
+            id,
+            url,
+            settings,
+            token,
+        } => spawn_local(crate::train::train_url(
             train_host(studio),
             id,
             url,
             settings,
+            token,
         )),
         FromPage::TrainControl { action } => crate::train::control(action),
         FromPage::TrainDownload { id, name } => crate::train::download(id, &name),
@@ -596,7 +604,7 @@ fn report_counts(studio: &Rc<RefCell<Studio>>) {
     }
 }
 
-async fn open_url(studio: Rc<RefCell<Studio>>, id: u32, url: String) {
+async fn open_url(studio: Rc<RefCell<Studio>>, id: u32, url: String, token: Option<String>) {
     let fail = |message: String| {
         post(&ToPage::LoadError {
             id,
@@ -608,7 +616,7 @@ async fn open_url(studio: Rc<RefCell<Studio>>, id: u32, url: String) {
         return fail("only http: and https: URLs are opened".into());
     }
     let name = url_file_name(&url, "points.ply");
-    match fetch_bytes(&url, id).await {
+    match fetch_bytes(&url, id, token.as_deref()).await {
         Ok(bytes) => add_layer(&studio, id, &bytes, &name, &url),
         Err(e) => fail(e),
     }
