@@ -8,18 +8,35 @@
 //! URL layout: `/data/<path>` is a file under DIR, every other path a file of the studio (`/` its
 //! `index.html`). Nothing outside the two roots is ever read: paths are decoded, checked segment by
 //! segment, canonicalised and required to stay inside their root (so a symlink out of it is refused).
+//! The request parser is `silvr::http` (a library module, so that it can be fuzzed).
+//!
+//! A lab runs this on shared machines and login nodes, so DIR is treated as holding anything:
+//! - files under `/data/` are downloads (`Content-Disposition: attachment`, `Content-Security-Policy:
+//!   sandbox`, never an HTML or script type): a page or script in DIR never runs on the studio's origin,
+//!   where it could read the studio's saved checkpoints;
+//! - dotfiles and dot-folders (`.git`, `.ssh`) are not served, and only regular files are opened (a FIFO
+//!   or device is refused before `open`, which could block a connection thread forever);
+//! - a loopback server answers only requests addressed to its loopback names (DNS rebinding); any other
+//!   bind (a LAN address, `0.0.0.0`, `::`) answers every `Host` but hands `/data/` only to requests
+//!   carrying its access token (`X-Silvr-Token`, 128 random bits unless `--token` gives one): the
+//!   printed link carries it as `?token=`, and the studio sends it with its fetches of its own origin.
+//!   A `--token` given on loopback is required there too. The studio's own files are public code and
+//!   need none;
+//! - CORS names origins: `*` and `null` (every sandboxed iframe) need `--allow-any-origin`.
 
 use std::fs::File;
 use std::io::{self, Read, Seek, SeekFrom, Write};
 use std::net::{IpAddr, Shutdown, TcpListener, TcpStream};
-use std::path::{Component, Path, PathBuf};
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-// The link's encoding is the studio's own (one codec for the links serve prints and the page reads).
-use silvr_worker::view::{decode_bytes, encode};
+use silvr::http::{head_end, parse_head, parse_range, request_path, ByteRange, Request};
+// The link's encoding is the studio's own (one codec for the links serve prints and the page reads),
+// and so are the token's query parameter and header.
+use silvr_worker::view::{encode, TOKEN_HEADER, TOKEN_PARAM};
 
 /// Largest request head (request line + headers) accepted; larger ones get 431.
 const MAX_HEAD_BYTES: usize = 16 * 1024;
@@ -32,6 +49,10 @@ const MAX_CONNECTIONS: usize = 64;
 /// PLY files the printed link opens at once, and directory levels searched for them.
 const MAX_LINKED_PLYS: usize = 16;
 const PLY_SEARCH_DEPTH: usize = 4;
+/// Random bytes of a generated access token (128 bits).
+const TOKEN_BYTES: usize = 16;
+/// Shortest token `--token` accepts (a guessable key is no key).
+const MIN_TOKEN_CHARS: usize = 16;
 /// How to build the studio, printed when none is found.
 const BUILD_STUDIO: &str =
     "scripts/setup.sh studio && PATH=\"$PWD/web/node_modules/.bin:$PATH\" trunk build --release";
@@ -43,17 +64,26 @@ pub struct ServeCmd {
     /// TCP port; 0 picks a free one.
     #[arg(long, default_value_t = 8080)]
     port: u16,
-    /// Address to listen on. Anything but loopback makes DIR readable from the network.
+    /// Address to listen on. Anything but loopback (a LAN address, 0.0.0.0, ::) makes DIR readable from
+    /// the network to whoever has the printed link: it carries a random access token.
     #[arg(long, default_value = "127.0.0.1")]
     bind: IpAddr,
+    /// Access token to require for /data/ (default: 128 random bits when --bind is not loopback, none on
+    /// loopback). At least 16 characters of A-Z a-z 0-9 - . _ ~; anyone who has it can read DIR.
+    #[arg(long, value_name = "TOKEN")]
+    token: Option<String>,
     /// The built studio (default: $SILVR_STUDIO_DIST, else ./dist, else the dist/ of the workspace this
     /// binary was built in).
     #[arg(long)]
     studio: Option<PathBuf>,
-    /// Also let pages of this origin (e.g. https://studio.example) read the files; repeatable, `*` for
-    /// any website.
+    /// Also let pages of this origin (e.g. https://studio.example) read the files; repeatable. `*` (any
+    /// website) and `null` (any sandboxed page) also need --allow-any-origin.
     #[arg(long = "allow-origin", value_name = "ORIGIN")]
     allow_origin: Vec<String>,
+    /// Accept `--allow-origin '*'` and `--allow-origin null`: any website (or sandboxed page) the user
+    /// visits may then read DIR off this server.
+    #[arg(long)]
+    allow_any_origin: bool,
     /// Log one line per request to stderr.
     #[arg(long)]
     verbose: bool,
@@ -68,6 +98,12 @@ pub fn run(cmd: ServeCmd) -> Result<()> {
         bail!("{} is not a folder", cmd.dir.display());
     }
     let studio = find_studio(cmd.studio.as_deref());
+    // Off loopback the folder is on the network: a key, unless the user gave one.
+    let token = match cmd.token {
+        Some(t) => Some(check_token(&t)?),
+        None if !cmd.bind.is_loopback() => Some(random_token()?),
+        None => None,
+    };
     let listener = TcpListener::bind((cmd.bind, cmd.port)).with_context(|| {
         format!(
             "listening on {}:{} (another server on that port? --port 0 picks a free one)",
@@ -75,7 +111,7 @@ pub fn run(cmd: ServeCmd) -> Result<()> {
         )
     })?;
     let port = listener.local_addr()?.port();
-    let cors = Cors::new(cmd.bind, port, &cmd.allow_origin)?;
+    let cors = Cors::new(cmd.bind, port, &cmd.allow_origin, cmd.allow_any_origin)?;
 
     let host = link_host(cmd.bind);
     let plys = find_plys(&data);
@@ -90,13 +126,14 @@ pub fn run(cmd: ServeCmd) -> Result<()> {
         data.display(),
         url_host(cmd.bind)
     )?;
-    writeln!(out, "open: {}", studio_link(&host, port, &plys))?;
+    let tok = token.as_deref();
+    writeln!(out, "open: {}", studio_link(&host, port, tok, &plys))?;
     for rel in &plys {
         writeln!(
             out,
             "  {}: {}",
             rel.display(),
-            studio_link(&host, port, std::slice::from_ref(rel))
+            studio_link(&host, port, tok, std::slice::from_ref(rel))
         )?;
     }
     out.flush()?;
@@ -117,8 +154,28 @@ pub fn run(cmd: ServeCmd) -> Result<()> {
     }
     if !cmd.bind.is_loopback() {
         eprintln!(
-            "warning: listening on {}: anyone on the network can read everything under {}",
+            "warning: listening on {}: anyone on the network who has the link can read everything under {}",
             cmd.bind,
+            data.display()
+        );
+        if cmd.bind.is_unspecified() {
+            eprintln!(
+                "note: from another machine, put this machine's name or address in place of {host} \
+                 (in the link and in its src= URLs)"
+            );
+        }
+    }
+    if token.is_some() {
+        eprintln!(
+            "note: the link is the key: its ?token= lets whoever has it read {} until this server stops; \
+             the studio's share links leave it out (scripts: send the header {TOKEN_HEADER}: <token>)",
+            data.display()
+        );
+    }
+    if cmd.allow_any_origin {
+        eprintln!(
+            "warning: --allow-any-origin: any website (or sandboxed page) open in a browser that can reach \
+             this server may read {}",
             data.display()
         );
     }
@@ -127,6 +184,7 @@ pub fn run(cmd: ServeCmd) -> Result<()> {
         studio: studio.root,
         data,
         cors,
+        token,
         verbose: cmd.verbose,
     });
     let active = Arc::new(AtomicUsize::new(0));
@@ -282,18 +340,53 @@ fn url_host(ip: IpAddr) -> String {
     }
 }
 
-/// `http://HOST:PORT/#src=<data URL>&src=...`: the studio reads its inputs from the fragment, which the
-/// browser never sends to a server.
-fn studio_link(host: &str, port: u16, plys: &[PathBuf]) -> String {
+/// `http://HOST:PORT/[?token=TOKEN]#src=<data URL>&src=...`: the studio reads its inputs from the
+/// fragment, which the browser never sends to a server, and the token from the query, which its share
+/// links leave out.
+fn studio_link(host: &str, port: u16, token: Option<&str>, plys: &[PathBuf]) -> String {
     let srcs: Vec<String> = plys
         .iter()
         .map(|rel| format!("src={}", encode(&data_url(host, port, rel))))
         .collect();
+    let query = token.map_or(String::new(), |t| format!("?{TOKEN_PARAM}={}", encode(t)));
     if srcs.is_empty() {
-        format!("http://{host}:{port}/")
+        format!("http://{host}:{port}/{query}")
     } else {
-        format!("http://{host}:{port}/#{}", srcs.join("&"))
+        format!("http://{host}:{port}/{query}#{}", srcs.join("&"))
     }
+}
+
+/// A fresh access token: [`TOKEN_BYTES`] from the operating system's generator, as hex.
+fn random_token() -> Result<String> {
+    let mut bytes = [0u8; TOKEN_BYTES];
+    getrandom::fill(&mut bytes)
+        .map_err(|e| anyhow::anyhow!("no random bytes from the OS for the access token: {e}"))?;
+    Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// A `--token` as given, if it is long enough and goes into a URL and a header as it is.
+fn check_token(token: &str) -> Result<String> {
+    let plain = token
+        .bytes()
+        .all(|b| b.is_ascii_alphanumeric() || b"-._~".contains(&b));
+    if !plain || token.len() < MIN_TOKEN_CHARS {
+        bail!(
+            "--token: expected at least {MIN_TOKEN_CHARS} characters of A-Z a-z 0-9 - . _ ~ \
+             (leave it out for a random one)"
+        );
+    }
+    Ok(token.to_string())
+}
+
+/// Equality that takes the same time wherever the first difference is (the token is a secret a client
+/// could otherwise guess byte by byte from response times). Hand-rolled: eight lines, no crate for it
+/// in the tree.
+fn same_secret(a: &[u8], b: &[u8]) -> bool {
+    if a.len() != b.len() {
+        return false;
+    }
+    let diff = a.iter().zip(b).fold(0u8, |d, (x, y)| d | (x ^ y));
+    std::hint::black_box(diff) == 0
 }
 
 /// The URL of a file under DIR, each path segment percent-encoded.
@@ -315,6 +408,10 @@ fn find_plys(root: &Path) -> Vec<PathBuf> {
         for entry in entries.flatten() {
             let name = entry.file_name();
             let Some(name) = name.to_str() else { continue };
+            // The server does not serve dotfiles or dot-folders (`.git`, `.ssh`).
+            if name.starts_with('.') {
+                continue;
+            }
             let rel = rel.join(name);
             let Ok(kind) = entry.file_type() else {
                 continue;
@@ -333,7 +430,7 @@ fn find_plys(root: &Path) -> Vec<PathBuf> {
                 let inside = root
                     .join(&rel)
                     .canonicalize()
-                    .is_ok_and(|p| p.starts_with(root) && p.is_file());
+                    .is_ok_and(|p| p.strip_prefix(root).is_ok_and(|r| !hidden(r)) && p.is_file());
                 if inside {
                     found.push(rel);
                 }
@@ -350,19 +447,32 @@ fn find_plys(root: &Path) -> Vec<PathBuf> {
 
 /// Which cross-origin pages may read the responses.
 struct Cors {
-    /// Allowed origins, as browsers write them (`scheme://host[:port]`).
+    /// Allowed origins, as browsers write them (`scheme://host[:port]`): the server's own and the listed.
     origins: Vec<String>,
-    /// `--allow-origin '*'`: any website.
+    /// The `--allow-origin` ones among them that name a website (not `null`): only these are granted
+    /// Chrome's private-network access.
+    listed: Vec<String>,
+    /// `--allow-origin '*'` (with `--allow-any-origin`): any website.
     any: bool,
     /// `Host` values a loopback server answers (`None`: any).
     hosts: Option<Vec<String>>,
 }
 
+/// The CORS answer to one request's `Origin`.
+#[derive(Debug, PartialEq, Eq)]
+struct Allowed {
+    /// `Access-Control-Allow-Origin`.
+    origin: String,
+    /// Whether a private-network preflight from it may be granted.
+    private_network: bool,
+}
+
 impl Cors {
     /// The server's own origins (its bind address, and the loopback names when it listens on loopback),
     /// plus the `--allow-origin` ones. Never any website by default: a page elsewhere must not be able to
-    /// read a user's files off a loopback server.
-    fn new(bind: IpAddr, port: u16, extra: &[String]) -> Result<Cors> {
+    /// read a user's files off a loopback server. `*` and `null` (the origin of every sandboxed iframe
+    /// and `data:` page) only with `any_ok` (`--allow-any-origin`).
+    fn new(bind: IpAddr, port: u16, extra: &[String], any_ok: bool) -> Result<Cors> {
         let origin = |host: &str| {
             if port == 80 {
                 format!("http://{host}")
@@ -378,20 +488,36 @@ impl Cors {
             }
         }
         let mut any = false;
+        let mut listed = Vec::new();
         for o in extra {
             let o = o.trim().trim_end_matches('/');
+            if (o == "*" || o.eq_ignore_ascii_case("null")) && !any_ok {
+                bail!(
+                    "--allow-origin {o} lets {} read the folder (and grants them Chrome's \
+                     private-network access); add --allow-any-origin if that is what you want",
+                    if o == "*" {
+                        "every website the user visits"
+                    } else {
+                        "every sandboxed page (any website can make one)"
+                    }
+                );
+            }
             if o == "*" {
                 any = true;
-            } else if o == "null" || o.contains("://") {
+            } else if o.eq_ignore_ascii_case("null") {
+                origins.push("null".into());
+            } else if o.contains("://") {
                 origins.push(o.to_string());
+                listed.push(o.to_string());
             } else {
-                bail!("--allow-origin {o}: expected an origin like https://studio.example[:port] or *");
+                bail!("--allow-origin {o}: expected an origin like https://studio.example[:port]");
             }
         }
         // DNS rebinding: a website whose name is made to resolve to 127.0.0.1 would be same-origin with a
         // loopback server and read DIR without any CORS check. A loopback server answers only requests
-        // addressed to its own names; one bound to a network address (the user was warned) answers all.
-        let hosts = (bind.is_loopback() || bind.is_unspecified()).then(|| {
+        // addressed to its own names. Any other bind answers every name (LAN browsers use its address or
+        // a host name; a wildcard one is reached by both): there the access token guards DIR.
+        let hosts = bind.is_loopback().then(|| {
             let mut h: Vec<String> = ["localhost", "127.0.0.1", "[::1]"]
                 .iter()
                 .map(|n| n.to_string())
@@ -412,6 +538,7 @@ impl Cors {
         });
         Ok(Cors {
             origins,
+            listed,
             any,
             hosts,
         })
@@ -426,31 +553,20 @@ impl Cors {
         }
     }
 
-    /// `Access-Control-Allow-Origin` for a request with this `Origin` header, if it may read the answer.
-    fn allow(&self, origin: Option<&str>) -> Option<String> {
+    /// The CORS answer for a request with this `Origin` header, if that origin may read the answer.
+    fn allow(&self, origin: Option<&str>) -> Option<Allowed> {
         if let Some(o) = origin {
             if self.origins.iter().any(|a| a.eq_ignore_ascii_case(o)) {
-                return Some(o.to_string());
+                return Some(Allowed {
+                    origin: o.to_string(),
+                    private_network: self.listed.iter().any(|a| a.eq_ignore_ascii_case(o)),
+                });
             }
         }
-        self.any.then(|| "*".to_string())
-    }
-}
-
-/// A parsed request head (header names lower-cased).
-#[derive(Debug)]
-struct Request {
-    method: String,
-    target: String,
-    headers: Vec<(String, String)>,
-}
-
-impl Request {
-    fn header(&self, name: &str) -> Option<&str> {
-        self.headers
-            .iter()
-            .find(|(n, _)| n == name)
-            .map(|(_, v)| v.as_str())
+        self.any.then(|| Allowed {
+            origin: "*".into(),
+            private_network: false,
+        })
     }
 }
 
@@ -490,6 +606,8 @@ struct Server {
     studio: Option<PathBuf>,
     data: PathBuf,
     cors: Cors,
+    /// The access token `/data/` requires (in the [`TOKEN_HEADER`] header), if any.
+    token: Option<String>,
     verbose: bool,
 }
 
@@ -538,14 +656,20 @@ impl Server {
                     headers: vec![("Allow", "GET, HEAD, OPTIONS".into())],
                     body: Body::Empty,
                 };
-                if allow.is_some() {
+                if let Some(allowed) = &allow {
                     r.headers.extend([
                         ("Access-Control-Allow-Methods", "GET, HEAD, OPTIONS".into()),
-                        ("Access-Control-Allow-Headers", "Range".into()),
+                        (
+                            "Access-Control-Allow-Headers",
+                            format!("Range, {TOKEN_HEADER}"),
+                        ),
                         ("Access-Control-Max-Age", "600".into()),
                     ]);
-                    // Chrome's Private Network Access: a public page asking for a loopback server.
-                    if req.header("access-control-request-private-network") == Some("true") {
+                    // Chrome's Private Network Access: a public page asking for a loopback or LAN
+                    // server. Only for origins the user named, never for `*` or `null`.
+                    if allowed.private_network
+                        && req.header("access-control-request-private-network") == Some("true")
+                    {
                         r.headers
                             .push(("Access-Control-Allow-Private-Network", "true".into()));
                     }
@@ -558,9 +682,9 @@ impl Server {
                 r
             }
         };
-        if let Some(origin) = allow {
+        if let Some(allowed) = allow {
             resp.headers.extend([
-                ("Access-Control-Allow-Origin", origin),
+                ("Access-Control-Allow-Origin", allowed.origin),
                 (
                     "Access-Control-Expose-Headers",
                     "Content-Length, Content-Range, Accept-Ranges".into(),
@@ -575,10 +699,16 @@ impl Server {
             Ok(s) => s,
             Err(status) => return Response::error(status),
         };
-        let (root, rel) = match segments.split_first() {
-            Some((first, rest)) if first == "data" => (Some(self.data.as_path()), rest),
-            _ => (self.studio.as_deref(), &segments[..]),
+        let (root, rel, data) = match segments.split_first() {
+            Some((first, rest)) if first == "data" => (Some(self.data.as_path()), rest, true),
+            _ => (self.studio.as_deref(), &segments[..], false),
         };
+        // Before anything touches the file system: without the key, not even whether a file exists.
+        if data {
+            if let Err(refused) = self.check_token(req) {
+                return refused;
+            }
+        }
         let Some(root) = root else {
             return Response::text(
                 404,
@@ -588,20 +718,30 @@ impl Server {
                 ),
             );
         };
+        // Dotfiles and dot-folders (`.git`, `.ssh`): checked by name here, and on the canonical path
+        // by `resolve` (a plain name may be a symlink into one).
+        if rel.iter().any(|s| s.starts_with('.')) {
+            return Response::error(404);
+        }
         let path = match resolve(root, rel) {
             Ok(p) => p,
             Err(status) => return Response::error(status),
         };
-        let file = match File::open(&path) {
+        let (file, len) = match open_regular(&path) {
             Ok(f) => f,
-            Err(e) => return Response::error(io_status(&e)),
+            Err(status) => return Response::error(status),
         };
-        let len = match file.metadata() {
-            Ok(m) if m.is_file() => m.len(),
-            Ok(_) => return Response::error(404),
-            Err(e) => return Response::error(io_status(&e)),
+        let mut headers = if data {
+            // Bytes to read, never a page: no HTML or script type, a download if navigated to, and a
+            // sandbox (an opaque origin, no script) should a browser render it all the same.
+            vec![
+                ("Content-Type", data_mime(&path).into()),
+                ("Content-Disposition", "attachment".into()),
+                ("Content-Security-Policy", "sandbox".into()),
+            ]
+        } else {
+            vec![("Content-Type", mime(&path).into())]
         };
-        let mut headers = vec![("Content-Type", mime(&path).into())];
         // If-Range names a version we never handed out (no validators): send the whole file.
         let range = match req.header("range") {
             Some(r) if req.header("if-range").is_none() => parse_range(r, len),
@@ -628,6 +768,59 @@ impl Server {
                 len: count,
             },
         }
+    }
+
+    /// `Ok` when no token is required or the request carries the right one; else the 401 to answer
+    /// (its own status: the studio words it as a missing or stale link, not as a refused file).
+    fn check_token(&self, req: &Request) -> Result<(), Response> {
+        let Some(token) = &self.token else {
+            return Ok(());
+        };
+        let given = req.header(&TOKEN_HEADER.to_ascii_lowercase());
+        if given.is_some_and(|g| same_secret(g.as_bytes(), token.as_bytes())) {
+            return Ok(());
+        }
+        let mut r = Response::text(
+            401,
+            format!(
+                "401 Unauthorized: {}; every file under /data/ needs this server's access token in the \
+                 header {TOKEN_HEADER}. Open the whole link silvr serve printed (with its ?{TOKEN_PARAM}=) \
+                 in the studio, or send the header yourself.\n",
+                if given.is_some() {
+                    "the access token does not match"
+                } else {
+                    "no access token was sent"
+                }
+            ),
+        );
+        // 401 names its scheme: here, the header.
+        r.headers.push(("WWW-Authenticate", TOKEN_HEADER.into()));
+        Err(r)
+    }
+}
+
+/// Opens `path` if it is a regular file (with its length); FIFOs, sockets and devices are refused (403)
+/// before `open`, which on a FIFO would wait for a writer forever. The file is opened non-blocking (a
+/// file swapped for a FIFO between the check and the open must not block either) and checked again.
+fn open_regular(path: &Path) -> Result<(File, u64), u16> {
+    match std::fs::metadata(path) {
+        Ok(m) if m.is_file() => {}
+        Ok(_) => return Err(403),
+        Err(e) => return Err(io_status(&e)),
+    }
+    let mut options = std::fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        // Regular files ignore O_NONBLOCK: reads and sendfile behave as usual.
+        options.custom_flags(libc::O_NONBLOCK);
+    }
+    let file = options.open(path).map_err(|e| io_status(&e))?;
+    match file.metadata() {
+        Ok(m) if m.is_file() => Ok((file, m.len())),
+        Ok(_) => Err(403),
+        Err(e) => Err(io_status(&e)),
     }
 }
 
@@ -668,99 +861,9 @@ fn read_head(conn: &mut TcpStream) -> Result<Request, Option<u16>> {
     }
 }
 
-/// End of the head (after its blank line), for CRLF and bare-LF line ends.
-fn head_end(buf: &[u8]) -> Option<usize> {
-    let crlf = buf.windows(4).position(|w| w == b"\r\n\r\n").map(|i| i + 4);
-    let lf = buf.windows(2).position(|w| w == b"\n\n").map(|i| i + 2);
-    match (crlf, lf) {
-        (Some(a), Some(b)) => Some(a.min(b)),
-        (a, b) => a.or(b),
-    }
-}
-
-/// Parses a request head; errors are the status to answer with.
-fn parse_head(head: &[u8]) -> Result<Request, u16> {
-    let text = String::from_utf8_lossy(head);
-    // Blank lines before the request line are to be ignored (RFC 9112 §2.2).
-    let mut lines = text
-        .trim_start_matches(['\r', '\n'])
-        .split('\n')
-        .map(|l| l.strip_suffix('\r').unwrap_or(l));
-    let request_line = lines.next().ok_or(400u16)?;
-    let mut parts = request_line.split(' ');
-    let (Some(method), Some(target), Some(version), None) =
-        (parts.next(), parts.next(), parts.next(), parts.next())
-    else {
-        return Err(400);
-    };
-    let token = |s: &str| !s.is_empty() && s.bytes().all(|b| b.is_ascii_graphic());
-    if !token(method) || !token(target) || !version.starts_with("HTTP/") {
-        return Err(400);
-    }
-    if !version.starts_with("HTTP/1.") {
-        return Err(505);
-    }
-    let mut headers = Vec::new();
-    for line in lines.take_while(|l| !l.is_empty()) {
-        let (name, value) = line.split_once(':').ok_or(400u16)?;
-        if !token(name) {
-            return Err(400);
-        }
-        headers.push((name.to_ascii_lowercase(), value.trim().to_string()));
-    }
-    Ok(Request {
-        method: method.to_string(),
-        target: target.to_string(),
-        headers,
-    })
-}
-
-/// The file path segments a request target names, decoded and checked: `..`, NUL, backslashes, empty
-/// segments (`//`: an absolute path once a prefix is cut) and anything that is not a plain file name are
-/// refused. Errors are the status to answer with (400 malformed, 403 refused).
-fn request_path(target: &str) -> Result<Vec<String>, u16> {
-    // Absolute form (`GET http://host/path`), which HTTP/1.1 servers must accept.
-    let target = match target.split_once("://") {
-        Some((scheme, rest)) if !scheme.contains('/') => rest.find('/').map_or("/", |i| &rest[i..]),
-        _ => target,
-    };
-    let path = target.split(['?', '#']).next().unwrap_or_default();
-    let Some(path) = path.strip_prefix('/') else {
-        return Err(400);
-    };
-    let decoded = decode_bytes(path).ok_or(400u16)?;
-    let decoded = String::from_utf8(decoded).map_err(|_| 400u16)?;
-    if decoded.contains('\0') {
-        return Err(400);
-    }
-    if decoded.contains('\\') {
-        return Err(403);
-    }
-    let parts: Vec<&str> = decoded.split('/').collect();
-    let mut segments = Vec::new();
-    for (i, seg) in parts.iter().enumerate() {
-        match *seg {
-            // A trailing slash names a folder (its index.html); an empty path is the root.
-            "" if i + 1 == parts.len() => {}
-            "" | ".." => return Err(403),
-            "." => {}
-            _ => {
-                let mut components = Path::new(seg).components();
-                if !matches!(
-                    (components.next(), components.next()),
-                    (Some(Component::Normal(_)), None)
-                ) {
-                    return Err(403);
-                }
-                segments.push(seg.to_string());
-            }
-        }
-    }
-    Ok(segments)
-}
-
 /// The canonical file `segments` names under `root` (a folder's `index.html`), refused (403) when it
-/// leaves the root, e.g. through a symlink.
+/// leaves the root, e.g. through a symlink, and not found (404) when it lies in or is a dotfile or
+/// dot-folder of the root (a symlink to `.git/config` included).
 fn resolve(root: &Path, segments: &[String]) -> Result<PathBuf, u16> {
     let mut path = root.to_path_buf();
     path.extend(segments);
@@ -771,10 +874,19 @@ fn resolve(root: &Path, segments: &[String]) -> Result<PathBuf, u16> {
             .canonicalize()
             .map_err(|e| io_status(&e))?;
     }
-    if !path.starts_with(root) {
+    let Ok(inside) = path.strip_prefix(root) else {
         return Err(403);
+    };
+    if hidden(inside) {
+        return Err(404);
     }
     Ok(path)
+}
+
+/// Whether a path relative to a root is, or lies in, a dotfile or dot-folder (never served).
+fn hidden(rel: &Path) -> bool {
+    rel.components()
+        .any(|c| c.as_os_str().as_encoded_bytes().starts_with(b"."))
 }
 
 fn io_status(e: &io::Error) -> u16 {
@@ -784,74 +896,9 @@ fn io_status(e: &io::Error) -> u16 {
     }
 }
 
-/// A `Range` header's meaning for a file of `len` bytes.
-#[derive(Debug, PartialEq, Eq)]
-enum ByteRange {
-    /// No usable range: the whole file (200). Also for several ranges, which we may answer whole.
-    Full,
-    /// Bytes `start..=end` (206).
-    Part { start: u64, end: u64 },
-    /// 416.
-    Unsatisfiable,
-}
-
-/// Parses a single byte range (`bytes=a-b`, `bytes=a-`, `bytes=-n`). A syntactically invalid header is
-/// ignored (RFC 9110 §14.2), so it means the whole file; one that starts past the end is unsatisfiable.
-fn parse_range(value: &str, len: u64) -> ByteRange {
-    let Some((unit, set)) = value.split_once('=') else {
-        return ByteRange::Full;
-    };
-    if !unit.trim().eq_ignore_ascii_case("bytes") || set.contains(',') {
-        return ByteRange::Full;
-    }
-    let Some((a, b)) = set.split_once('-') else {
-        return ByteRange::Full;
-    };
-    let (a, b) = (a.trim(), b.trim());
-    if a.is_empty() {
-        let Some(n) = digits(b) else {
-            return ByteRange::Full;
-        };
-        if n == 0 || len == 0 {
-            return ByteRange::Unsatisfiable;
-        }
-        return ByteRange::Part {
-            start: len - n.min(len),
-            end: len - 1,
-        };
-    }
-    let Some(start) = digits(a) else {
-        return ByteRange::Full;
-    };
-    let end = if b.is_empty() {
-        u64::MAX
-    } else {
-        match digits(b) {
-            Some(e) if e >= start => e,
-            _ => return ByteRange::Full,
-        }
-    };
-    if start >= len {
-        return ByteRange::Unsatisfiable;
-    }
-    ByteRange::Part {
-        start,
-        end: end.min(len - 1),
-    }
-}
-
-/// A decimal number; too many digits saturate (such a position is past any file's end).
-fn digits(s: &str) -> Option<u64> {
-    if s.is_empty() || !s.bytes().all(|b| b.is_ascii_digit()) {
-        return None;
-    }
-    Some(s.bytes().fold(0u64, |n, d| {
-        n.saturating_mul(10).saturating_add(u64::from(d - b'0'))
-    }))
-}
-
-/// Content types by extension. `.wasm` must be `application/wasm` for streaming compilation; PLY and
-/// unknown files are opaque bytes (with `nosniff`, a browser never renders them as a page).
+/// Content types of the studio's files by extension. `.wasm` must be `application/wasm` for streaming
+/// compilation; PLY and unknown files are opaque bytes (with `nosniff`, a browser never renders them as a
+/// page).
 fn mime(path: &Path) -> &'static str {
     let ext = path
         .extension()
@@ -870,12 +917,22 @@ fn mime(path: &Path) -> &'static str {
     }
 }
 
+/// Content types of files under `/data/`: only types a browser never runs script from (PNG, JPEG, JSON)
+/// keep theirs; everything else (HTML, SVG, JS, PLY, ...) is opaque bytes.
+fn data_mime(path: &Path) -> &'static str {
+    match mime(path) {
+        t @ ("image/png" | "image/jpeg" | "application/json") => t,
+        _ => "application/octet-stream",
+    }
+}
+
 fn reason(status: u16) -> &'static str {
     match status {
         200 => "OK",
         204 => "No Content",
         206 => "Partial Content",
         400 => "Bad Request",
+        401 => "Unauthorized",
         403 => "Forbidden",
         404 => "Not Found",
         405 => "Method Not Allowed",
@@ -955,117 +1012,10 @@ fn finish(mut conn: TcpStream) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use silvr_worker::view::decode_bytes;
     use std::net::Ipv4Addr;
 
     const LOCAL: IpAddr = IpAddr::V4(Ipv4Addr::LOCALHOST);
-
-    #[test]
-    fn ranges_of_every_form() {
-        use ByteRange::*;
-        let p = |start, end| Part { start, end };
-        assert_eq!(parse_range("bytes=10-19", 100), p(10, 19));
-        assert_eq!(parse_range("bytes=0-0", 100), p(0, 0));
-        assert_eq!(parse_range("bytes=90-", 100), p(90, 99));
-        assert_eq!(parse_range("bytes=-5", 100), p(95, 99));
-        assert_eq!(
-            parse_range("bytes=-500", 100),
-            p(0, 99),
-            "suffix longer than the file"
-        );
-        assert_eq!(parse_range("bytes=50-1000", 100), p(50, 99), "end clamped");
-        assert_eq!(
-            parse_range("Bytes = 1 - 2", 100),
-            p(1, 2),
-            "spaces, unit case"
-        );
-        assert_eq!(parse_range("bytes=99-", 100), p(99, 99));
-        assert_eq!(
-            parse_range("bytes=5-99999999999999999999999", 100),
-            p(5, 99),
-            "huge end saturates"
-        );
-    }
-
-    #[test]
-    fn invalid_ranges_mean_the_whole_file() {
-        for r in [
-            "",
-            "bytes",
-            "bytes=",
-            "bytes=-",
-            "bytes=a-b",
-            "bytes=5",
-            "bytes=9-3",
-            "bytes=1-2-3",
-            "bytes=+1-2",
-            "bytes=0x10-",
-            "items=0-1",
-            "bytes=0-1,5-6",
-            "bytes=0-1,",
-        ] {
-            assert_eq!(parse_range(r, 100), ByteRange::Full, "{r:?}");
-        }
-    }
-
-    #[test]
-    fn unsatisfiable_ranges() {
-        for (r, len) in [
-            ("bytes=100-", 100),
-            ("bytes=100-200", 100),
-            ("bytes=99999999999999999999999-", 100),
-            ("bytes=-0", 100),
-            ("bytes=0-", 0),
-            ("bytes=-1", 0),
-        ] {
-            assert_eq!(
-                parse_range(r, len),
-                ByteRange::Unsatisfiable,
-                "{r:?} of {len}"
-            );
-        }
-    }
-
-    #[test]
-    fn request_paths_are_decoded_into_plain_segments() {
-        let ok = |t: &str| request_path(t).unwrap();
-        assert_eq!(ok("/"), Vec::<String>::new());
-        assert_eq!(ok("/index.html"), ["index.html"]);
-        assert_eq!(ok("/data/sub/x.ply?v=1#frag"), ["data", "sub", "x.ply"]);
-        assert_eq!(ok("/data/sub/"), ["data", "sub"]);
-        assert_eq!(ok("/data/./a%20b.ply"), ["data", "a b.ply"]);
-        assert_eq!(ok("/data/caf%C3%A9"), ["data", "café"]);
-        assert_eq!(
-            ok("/a..b/c..."),
-            ["a..b", "c..."],
-            "dots inside names are fine"
-        );
-        assert_eq!(ok("http://127.0.0.1:8080/data/x"), ["data", "x"]);
-    }
-
-    #[test]
-    fn traversal_and_odd_bytes_are_refused() {
-        for (t, status) in [
-            ("/data/../secret", 403),
-            ("/../secret", 403),
-            ("/data/%2e%2e/secret", 403),
-            ("/data/%2E%2E/secret", 403),
-            ("/data/sub/%2e%2e%2f%2e%2e%2fsecret", 403),
-            ("/data/..%5csecret", 403),
-            ("/data/a%5cb", 403),
-            ("/data\\..\\secret", 403),
-            ("//etc/passwd", 403),
-            ("/data//etc/passwd", 403),
-            ("/data/%2fetc%2fpasswd", 403),
-            ("/data/x%00.ply", 400),
-            ("/data/%zz", 400),
-            ("/data/%4", 400),
-            ("/data/%ff", 400),
-            ("data/x", 400),
-            ("*", 400),
-        ] {
-            assert_eq!(request_path(t), Err(status), "{t}");
-        }
-    }
 
     #[test]
     fn percent_encoding_keeps_only_the_unreserved_set() {
@@ -1086,16 +1036,19 @@ mod tests {
     fn the_link_holds_the_encoded_data_urls() {
         let one = [PathBuf::from("silvr/points.ply")];
         assert_eq!(
-            studio_link("127.0.0.1", 8080, &one),
+            studio_link("127.0.0.1", 8080, None, &one),
             "http://127.0.0.1:8080/#src=http%3A%2F%2F127.0.0.1%3A8080%2Fdata%2Fsilvr%2Fpoints.ply"
         );
         let two = [PathBuf::from("a.ply"), PathBuf::from("my dir/b.ply")];
         assert_eq!(
-            studio_link("127.0.0.1", 1, &two),
+            studio_link("127.0.0.1", 1, None, &two),
             "http://127.0.0.1:1/#src=http%3A%2F%2F127.0.0.1%3A1%2Fdata%2Fa.ply\
              &src=http%3A%2F%2F127.0.0.1%3A1%2Fdata%2Fmy%2520dir%2Fb.ply"
         );
-        assert_eq!(studio_link("127.0.0.1", 1, &[]), "http://127.0.0.1:1/");
+        assert_eq!(
+            studio_link("127.0.0.1", 1, None, &[]),
+            "http://127.0.0.1:1/"
+        );
         assert_eq!(link_host(IpAddr::V4(Ipv4Addr::UNSPECIFIED)), "127.0.0.1");
         assert_eq!(link_host(LOCAL), "127.0.0.1");
         assert_eq!(link_host("192.168.1.5".parse().unwrap()), "192.168.1.5");
@@ -1103,15 +1056,62 @@ mod tests {
     }
 
     #[test]
+    fn the_token_is_in_the_links_query_never_its_hash() {
+        let one = [PathBuf::from("a.ply")];
+        assert_eq!(
+            studio_link("10.0.0.2", 8080, Some("k3y-0123456789abcdef"), &one),
+            "http://10.0.0.2:8080/?token=k3y-0123456789abcdef#src=http%3A%2F%2F10.0.0.2%3A8080%2Fdata%2Fa.ply"
+        );
+        assert_eq!(
+            studio_link("10.0.0.2", 8080, Some("k3y-0123456789abcdef"), &[]),
+            "http://10.0.0.2:8080/?token=k3y-0123456789abcdef"
+        );
+    }
+
+    #[test]
+    fn tokens_are_random_and_plain() {
+        let (a, b) = (random_token().unwrap(), random_token().unwrap());
+        assert_eq!(a.len(), 2 * TOKEN_BYTES, "{a}");
+        assert!(a.bytes().all(|c| c.is_ascii_hexdigit()), "{a}");
+        assert_ne!(a, b);
+        assert_eq!(check_token(&a).unwrap(), a);
+        assert!(check_token("Abc-._~0123456789").is_ok());
+        for bad in [
+            "",
+            "short",
+            "0123456789abcde",
+            "0123456789abcdef&x",
+            "0123456789 abcdef",
+        ] {
+            assert!(check_token(bad).is_err(), "{bad:?}");
+        }
+    }
+
+    #[test]
+    fn secrets_compare_whole() {
+        assert!(same_secret(b"0123456789abcdef", b"0123456789abcdef"));
+        assert!(!same_secret(b"0123456789abcdef", b"0123456789abcdeF"));
+        assert!(!same_secret(b"0123456789abcdef", b"1123456789abcdef"));
+        assert!(!same_secret(b"0123456789abcdef", b"0123456789abcde"));
+        assert!(!same_secret(b"0123456789abcdef", b""));
+    }
+
+    /// The `Access-Control-Allow-Origin` a request from `origin` gets.
+    fn acao(cors: &Cors, origin: &str) -> Option<String> {
+        cors.allow(Some(origin)).map(|a| a.origin)
+    }
+
+    #[test]
     fn cors_allows_only_the_servers_own_and_listed_origins() {
-        let cors = Cors::new(LOCAL, 8080, &[]).unwrap();
+        let cors = Cors::new(LOCAL, 8080, &[], false).unwrap();
         for own in [
             "http://127.0.0.1:8080",
             "http://localhost:8080",
             "http://LOCALHOST:8080",
             "http://[::1]:8080",
         ] {
-            assert_eq!(cors.allow(Some(own)).as_deref(), Some(own));
+            assert_eq!(acao(&cors, own).as_deref(), Some(own));
+            assert!(!cors.allow(Some(own)).unwrap().private_network);
         }
         for foreign in [
             "http://evil.example",
@@ -1125,81 +1125,104 @@ mod tests {
         }
         assert_eq!(cors.allow(None), None);
 
-        let cors = Cors::new(LOCAL, 8080, &["https://studio.example/".into()]).unwrap();
+        let cors = Cors::new(LOCAL, 8080, &["https://studio.example/".into()], false).unwrap();
         assert_eq!(
-            cors.allow(Some("https://studio.example")).as_deref(),
-            Some("https://studio.example")
+            cors.allow(Some("https://studio.example")),
+            Some(Allowed {
+                origin: "https://studio.example".into(),
+                private_network: true
+            })
         );
         assert_eq!(cors.allow(Some("http://evil.example")), None);
+        assert!(Cors::new(LOCAL, 8080, &["studio.example".into()], false).is_err());
+    }
 
-        let cors = Cors::new(LOCAL, 8080, &["*".into()]).unwrap();
+    #[test]
+    fn any_origin_and_null_need_the_flag_and_never_get_private_network_access() {
+        for o in ["*", "null", "NULL", " * "] {
+            let e = Cors::new(LOCAL, 8080, &[o.into()], false).err().unwrap();
+            assert!(e.to_string().contains("--allow-any-origin"), "{o}: {e}");
+        }
+        let cors = Cors::new(LOCAL, 8080, &["*".into()], true).unwrap();
         assert_eq!(
-            cors.allow(Some("http://evil.example")).as_deref(),
-            Some("*")
+            cors.allow(Some("http://evil.example")),
+            Some(Allowed {
+                origin: "*".into(),
+                private_network: false
+            })
         );
         assert_eq!(
-            cors.allow(Some("http://localhost:8080")).as_deref(),
+            acao(&cors, "http://localhost:8080").as_deref(),
             Some("http://localhost:8080")
         );
+        let cors = Cors::new(LOCAL, 8080, &["null".into()], true).unwrap();
+        assert_eq!(
+            cors.allow(Some("null")),
+            Some(Allowed {
+                origin: "null".into(),
+                private_network: false
+            })
+        );
+        assert_eq!(cors.allow(Some("http://evil.example")), None);
+    }
 
-        // A LAN bind: its own address only, not the loopback names of other local servers' pages.
-        let lan: IpAddr = "192.168.1.5".parse().unwrap();
+    #[test]
+    fn the_host_check_follows_the_bind() {
         // DNS rebinding: a loopback server refuses requests addressed to other names.
-        let local = Cors::new(LOCAL, 8080, &[]).unwrap();
+        let local = Cors::new(LOCAL, 8080, &[], false).unwrap();
         assert!(local.host_ok(Some("127.0.0.1:8080")) && local.host_ok(Some("LOCALHOST:8080")));
         assert!(local.host_ok(Some("[::1]:8080")) && local.host_ok(None));
         assert!(!local.host_ok(Some("evil.example:8080")));
         assert!(!local.host_ok(Some("127.0.0.1:9999")));
-        let cors = Cors::new(lan, 9000, &[]).unwrap();
+        // A LAN bind answers any name (the token guards the data), and lets in its own address's pages,
+        // not the loopback names of other local servers' pages.
+        let lan: IpAddr = "192.168.1.5".parse().unwrap();
+        let cors = Cors::new(lan, 9000, &[], false).unwrap();
         assert!(cors.host_ok(Some("192.168.1.5:9000")) && cors.host_ok(Some("anything:1")));
         assert!(cors.allow(Some("http://192.168.1.5:9000")).is_some());
         assert_eq!(cors.allow(Some("http://localhost:9000")), None);
-        assert!(Cors::new(LOCAL, 8080, &["studio.example".into()]).is_err());
-    }
-
-    #[test]
-    fn request_heads_parse_or_fail_with_a_status() {
-        let r = parse_head(b"GET /x HTTP/1.1\r\nHost: a\r\nRange:  bytes=0-1 \r\n\r\n").unwrap();
-        assert_eq!((r.method.as_str(), r.target.as_str()), ("GET", "/x"));
-        assert_eq!(r.header("range"), Some("bytes=0-1"));
-        assert_eq!(r.header("host"), Some("a"));
-        assert!(parse_head(b"\r\nHEAD / HTTP/1.0\n\n").is_ok());
-        for (head, status) in [
-            (&b"\r\n\r\n"[..], 400),
-            (b"GET\r\n\r\n", 400),
-            (b"GET / HTTP/1.1 extra\r\n\r\n", 400),
-            (b"GET /  HTTP/1.1\r\n\r\n", 400),
-            (b"GET / FTP/1.1\r\n\r\n", 400),
-            (b"GET / HTTP/2.0\r\n\r\n", 505),
-            (b"GET / HTTP/1.1\r\nno colon\r\n\r\n", 400),
-            (b"GET / HTTP/1.1\r\n: empty name\r\n\r\n", 400),
-            (b"G\xffT / HTTP/1.1\r\n\r\n", 400),
-        ] {
-            assert_eq!(
-                parse_head(head).map(|_| ()),
-                Err(status),
-                "{}",
-                String::from_utf8_lossy(head)
-            );
-        }
-        assert_eq!(head_end(b"GET / HTTP/1.1\r\n\r\nbody"), Some(18));
-        assert_eq!(head_end(b"GET / HTTP/1.1\n\n"), Some(16));
-        assert_eq!(head_end(b"GET / HTTP/1.1\r\n"), None);
+        // A wildcard bind is reached by LAN names too.
+        let any = Cors::new(IpAddr::V4(Ipv4Addr::UNSPECIFIED), 9000, &[], false).unwrap();
+        assert!(any.host_ok(Some("192.168.1.5:9000")) && any.host_ok(Some("lab-node-3:9000")));
     }
 
     #[test]
     fn mime_types() {
-        for (name, mime_type) in [
-            ("index.html", "text/html; charset=utf-8"),
-            ("app.js", "text/javascript"),
-            ("app_bg.WASM", "application/wasm"),
-            ("style.css", "text/css"),
-            ("report.json", "application/json"),
-            ("view.png", "image/png"),
-            ("points.ply", "application/octet-stream"),
-            ("README", "application/octet-stream"),
+        for (name, mime_type, data) in [
+            (
+                "index.html",
+                "text/html; charset=utf-8",
+                "application/octet-stream",
+            ),
+            (
+                "x.HTM",
+                "text/html; charset=utf-8",
+                "application/octet-stream",
+            ),
+            ("app.js", "text/javascript", "application/octet-stream"),
+            ("app.mjs", "text/javascript", "application/octet-stream"),
+            (
+                "app_bg.WASM",
+                "application/wasm",
+                "application/octet-stream",
+            ),
+            ("style.css", "text/css", "application/octet-stream"),
+            ("report.json", "application/json", "application/json"),
+            ("view.png", "image/png", "image/png"),
+            ("view.jpeg", "image/jpeg", "image/jpeg"),
+            (
+                "points.ply",
+                "application/octet-stream",
+                "application/octet-stream",
+            ),
+            (
+                "README",
+                "application/octet-stream",
+                "application/octet-stream",
+            ),
         ] {
             assert_eq!(mime(Path::new(name)), mime_type, "{name}");
+            assert_eq!(data_mime(Path::new(name)), data, "{name} under /data/");
         }
     }
 

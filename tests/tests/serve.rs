@@ -51,15 +51,28 @@ impl Server {
             stderr,
         };
         let first = server.line();
+        // `... at http://HOST:PORT/` (HOST: the bind address).
         let port = first
-            .split("at http://127.0.0.1:")
-            .nth(1)
-            .and_then(|rest| rest.strip_suffix('/'))
-            .and_then(|p| p.parse().ok());
+            .rsplit_once(" at http://")
+            .and_then(|(_, url)| url.strip_suffix('/'))
+            .and_then(|hp| hp.rsplit_once(':'))
+            .and_then(|(_, p)| p.parse().ok());
         server.port = port.unwrap_or_else(|| panic!("no port in the first line: {first:?}"));
         assert!(first.starts_with("serving the studio from "), "{first}");
         server.first_line = first;
         server
+    }
+
+    /// Waits for a stderr line containing `needle` (at most 20 lines, 10 s each).
+    fn stderr_has(&self, needle: &str) -> bool {
+        for _ in 0..20 {
+            match self.stderr.recv_timeout(Duration::from_secs(10)) {
+                Ok(l) if l.contains(needle) => return true,
+                Ok(_) => {}
+                Err(_) => return false,
+            }
+        }
+        false
     }
 
     /// The next stdout line (the test fails after 30 s without one).
@@ -338,7 +351,10 @@ fn serve_hands_out_the_studio_and_the_data_and_nothing_else() {
         r.header("access-control-allow-methods"),
         Some("GET, HEAD, OPTIONS")
     );
-    assert_eq!(r.header("access-control-allow-headers"), Some("Range"));
+    assert_eq!(
+        r.header("access-control-allow-headers"),
+        Some("Range, X-Silvr-Token")
+    );
     let r = preflight("http://evil.example");
     assert_eq!(r.header("access-control-allow-origin"), None);
     assert_eq!(r.header("access-control-allow-methods"), None);
@@ -438,4 +454,351 @@ fn serving_a_missing_folder_is_a_clear_error() {
         err.contains("a-file") && err.contains("not a folder"),
         "{err}"
     );
+}
+
+/// Runs `silvr serve DATA --port 0 ARGS...`, which must exit with status 1 within 30 s (a command that
+/// should have been refused would serve forever: it is killed and the test fails).
+fn refused(data: &Path, args: &[&str]) -> std::process::Output {
+    let mut child = Command::new(build_silvr())
+        .arg("serve")
+        .arg(data)
+        .args(["--port", "0"])
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    while child.try_wait().unwrap().is_none() {
+        if std::time::Instant::now() > deadline {
+            let _ = child.kill();
+            let out = child.wait_with_output().unwrap();
+            panic!(
+                "silvr serve {args:?} was accepted (still serving after 30 s): {}",
+                String::from_utf8_lossy(&out.stdout)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.code(), Some(1), "{args:?}");
+    out
+}
+
+/// Whether `haystack` contains `needle` anywhere.
+fn contains(haystack: &[u8], needle: &[u8]) -> bool {
+    haystack.windows(needle.len()).any(|w| w == needle)
+}
+
+#[test]
+fn files_under_data_are_inert_downloads_never_pages_or_scripts() {
+    let f = fixture();
+    let page = b"<!doctype html><script>window.__pwned = localStorage</script>";
+    std::fs::write(f.data.join("page.html"), page).unwrap();
+    std::fs::write(f.data.join("evil.js"), b"self.__pwned = 1").unwrap();
+    std::fs::write(f.data.join("evil.mjs"), b"self.__pwned = 1").unwrap();
+    std::fs::write(f.data.join("image.svg"), b"<svg onload=\"alert(1)\"/>").unwrap();
+    std::fs::write(f.data.join("report.json"), b"{\"ok\":true}").unwrap();
+    std::fs::write(f.data.join("view.png"), b"\x89PNG\r\n\x1a\n").unwrap();
+    std::fs::create_dir_all(f.data.join("site")).unwrap();
+    std::fs::write(f.data.join("site").join("index.html"), page).unwrap();
+    let server = Server::start(&f.data, &["--studio", f.studio.to_str().unwrap()]);
+
+    for (path, content_type) in [
+        ("/data/page.html", "application/octet-stream"),
+        ("/data/site/", "application/octet-stream"),
+        ("/data/evil.js", "application/octet-stream"),
+        ("/data/evil.mjs", "application/octet-stream"),
+        ("/data/image.svg", "application/octet-stream"),
+        ("/data/sub/x.ply", "application/octet-stream"),
+        // Types the studio or a person may read as data keep theirs: no browser runs script from them.
+        ("/data/report.json", "application/json"),
+        ("/data/view.png", "image/png"),
+    ] {
+        let r = server.get(path);
+        assert_eq!(r.status, 200, "{path}");
+        assert_eq!(r.header("content-type"), Some(content_type), "{path}");
+        assert_eq!(
+            r.header("content-disposition"),
+            Some("attachment"),
+            "{path}"
+        );
+        assert_eq!(
+            r.header("content-security-policy"),
+            Some("sandbox"),
+            "{path}"
+        );
+        assert_eq!(
+            r.header("x-content-type-options"),
+            Some("nosniff"),
+            "{path}"
+        );
+    }
+    // The bytes themselves are untouched (the studio reads PLYs from here, ranges included).
+    assert_eq!(server.get("/data/page.html").body, page);
+    let r = server.get_with("/data/sub/x.ply", "Range: bytes=10-19");
+    assert_eq!((r.status, r.body.as_slice()), (206, &f.ply[10..20]));
+    assert_eq!(r.header("content-disposition"), Some("attachment"));
+    // The studio's own page is still a page.
+    let r = server.get("/");
+    assert_eq!(r.header("content-type"), Some("text/html; charset=utf-8"));
+    assert_eq!(r.header("content-disposition"), None);
+    assert_eq!(r.header("content-security-policy"), None);
+}
+
+#[test]
+fn any_origin_and_null_are_refused_without_allow_any_origin() {
+    let f = fixture();
+    for origin in ["*", "null"] {
+        let out = refused(&f.data, &["--allow-origin", origin]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("--allow-any-origin"), "{err}");
+        assert!(!err.contains("panicked"), "{err}");
+    }
+
+    // With the flag: a warning, and `null` may read, but is never granted private-network access; an
+    // origin the user named is.
+    let server = Server::start(
+        &f.data,
+        &[
+            "--allow-origin",
+            "null",
+            "--allow-any-origin",
+            "--allow-origin",
+            "http://studio.example",
+        ],
+    );
+    assert!(server.stderr_has("warning: --allow-any-origin"));
+    let r = server.get_with("/data/sub/x.ply", "Origin: null");
+    assert_eq!(r.status, 200);
+    assert_eq!(r.header("access-control-allow-origin"), Some("null"));
+    let preflight = |origin: &str| {
+        server.send(&format!(
+            "OPTIONS /data/sub/x.ply HTTP/1.1\r\nHost: x\r\nOrigin: {origin}\r\n\
+             Access-Control-Request-Method: GET\r\nAccess-Control-Request-Private-Network: true\r\n\r\n"
+        ))
+    };
+    let r = preflight("null");
+    assert_eq!(r.header("access-control-allow-origin"), Some("null"));
+    assert_eq!(r.header("access-control-allow-private-network"), None);
+    let r = preflight("http://studio.example");
+    assert_eq!(
+        r.header("access-control-allow-origin"),
+        Some("http://studio.example")
+    );
+    assert_eq!(
+        r.header("access-control-allow-private-network"),
+        Some("true")
+    );
+    assert_eq!(
+        r.header("access-control-allow-headers"),
+        Some("Range, X-Silvr-Token")
+    );
+
+    let server = Server::start(&f.data, &["--allow-origin", "*", "--allow-any-origin"]);
+    let r = server.get_with("/data/sub/x.ply", "Origin: http://evil.example");
+    assert_eq!(r.header("access-control-allow-origin"), Some("*"));
+    let r = server.send(
+        "OPTIONS /data/sub/x.ply HTTP/1.1\r\nHost: x\r\nOrigin: http://evil.example\r\n\
+         Access-Control-Request-Method: GET\r\nAccess-Control-Request-Private-Network: true\r\n\r\n",
+    );
+    assert_eq!(r.header("access-control-allow-origin"), Some("*"));
+    assert_eq!(r.header("access-control-allow-private-network"), None);
+}
+
+#[test]
+fn dotfiles_and_dot_folders_are_not_served() {
+    let f = fixture();
+    const KEY: &[u8] = b"-----BEGIN OPENSSH PRIVATE KEY-----";
+    for rel in [
+        ".git/config",
+        ".ssh/id_ed25519",
+        ".env",
+        "sub/.hidden.ply",
+        "sub/.x/y.ply",
+    ] {
+        let path = f.data.join(rel);
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(path, KEY).unwrap();
+    }
+    std::fs::write(f.studio.join(".env"), KEY).unwrap();
+    // A plain name that leads into a dot-folder is refused as well.
+    #[cfg(unix)]
+    std::os::unix::fs::symlink(f.data.join(".ssh/id_ed25519"), f.data.join("key.ply")).unwrap();
+    let server = Server::start(&f.data, &["--studio", f.studio.to_str().unwrap()]);
+    for _ in 0..2 {
+        let line = server.line();
+        assert!(!line.contains(".hidden") && !line.contains(".x"), "{line}");
+    }
+    let mut paths = vec![
+        "/data/.git/config",
+        "/data/.ssh/id_ed25519",
+        "/data/.env",
+        "/data/sub/.hidden.ply",
+        "/data/sub/.x/y.ply",
+        "/data/%2egit/config",
+        "/data/%2Essh/id_ed25519",
+        "/data/sub/./.hidden.ply",
+        "/.env",
+    ];
+    if cfg!(unix) {
+        paths.push("/data/key.ply");
+    }
+    for path in paths {
+        let r = server.get(path);
+        assert_eq!(r.status, 404, "{path}");
+        assert!(!contains(&r.body, KEY), "{path} leaked the key");
+    }
+    assert_eq!(server.get("/data/sub/x.ply").status, 200);
+}
+
+#[cfg(unix)]
+#[test]
+fn fifos_are_refused_without_blocking_a_connection() {
+    let f = fixture();
+    for name in ["pipe.ply", "pipe"] {
+        let status = Command::new("mkfifo")
+            .arg(f.data.join(name))
+            .status()
+            .unwrap();
+        assert!(status.success(), "mkfifo");
+    }
+    let server = Server::start(&f.data, &[]);
+    for path in ["/data/pipe.ply", "/data/pipe"] {
+        let t = std::time::Instant::now();
+        // Opening a FIFO waits for a writer: a server that opens it never answers (the read times out).
+        let r = server.get(path);
+        assert_eq!(r.status, 403, "{path}");
+        assert!(
+            t.elapsed() < Duration::from_secs(5),
+            "{path}: {:?}",
+            t.elapsed()
+        );
+    }
+    assert_eq!(server.get("/data/sub/x.ply").status, 200);
+}
+
+/// The token in a printed link (`http://HOST:PORT/?token=TOKEN#...`).
+fn link_token(line: &str) -> String {
+    let (_, rest) = line
+        .split_once("?token=")
+        .unwrap_or_else(|| panic!("no token in the link: {line}"));
+    rest.split(['#', '&']).next().unwrap().to_string()
+}
+
+#[test]
+fn off_loopback_the_data_needs_the_token_and_any_host_is_answered() {
+    let f = fixture();
+    let server = Server::start(
+        &f.data,
+        &["--bind", "0.0.0.0", "--studio", f.studio.to_str().unwrap()],
+    );
+    assert!(
+        server.first_line.contains("at http://0.0.0.0:"),
+        "{}",
+        server.first_line
+    );
+    let open = server.line();
+    let port = server.port;
+    assert!(
+        open.starts_with(&format!("open: http://127.0.0.1:{port}/?token=")),
+        "{open}"
+    );
+    let token = link_token(&open);
+    assert_eq!(token.len(), 32, "{token}");
+    assert!(token.bytes().all(|b| b.is_ascii_hexdigit()), "{token}");
+    // The token is in the query only: the hash (the part a share link carries) has none.
+    let hash = open.split_once('#').unwrap().1;
+    assert!(!hash.contains(&token), "{open}");
+    assert!(server.stderr_has("the link is the key"));
+
+    // As a LAN browser addresses it (its IP or a host name), or as `curl -H 'Host: localhost'` would.
+    let ask = |host: &str, path: &str, extra: &str| {
+        send_bytes(
+            port,
+            format!("GET {path} HTTP/1.1\r\nHost: {host}\r\n{extra}\r\n").as_bytes(),
+        )
+    };
+    for host in [
+        format!("192.168.77.7:{port}"),
+        format!("lab-node-3:{port}"),
+        format!("localhost:{port}"),
+    ] {
+        // The studio's code is public: no token, and no 421.
+        let r = ask(&host, "/", "");
+        let body = String::from_utf8_lossy(&r.body);
+        assert_eq!(r.status, 200, "{host}: {body}");
+        assert_eq!(body, INDEX, "{host}");
+        let r = ask(&host, "/app_bg.wasm", "");
+        assert_eq!(r.status, 200, "{host}");
+
+        let mut wrong = token.clone().into_bytes();
+        wrong[31] = if wrong[31] == b'0' { b'1' } else { b'0' };
+        let wrong = String::from_utf8(wrong).unwrap();
+        for (what, extra) in [
+            ("no token", String::new()),
+            ("a wrong token", format!("X-Silvr-Token: {wrong}\r\n")),
+            ("a prefix", format!("X-Silvr-Token: {}\r\n", &token[..31])),
+            ("a longer one", format!("X-Silvr-Token: {token}0\r\n")),
+            ("an empty one", "X-Silvr-Token: \r\n".to_string()),
+        ] {
+            for path in ["/data/sub/x.ply", "/data/no-such-file.ply"] {
+                let r = ask(&host, path, &extra);
+                assert_eq!(r.status, 401, "{host} {path} with {what}");
+                assert_eq!(r.header("www-authenticate"), Some("X-Silvr-Token"));
+                assert!(!contains(&r.body, &f.ply), "{what} read the data");
+                let body = String::from_utf8_lossy(&r.body);
+                assert!(body.contains("X-Silvr-Token"), "{what}: {body}");
+            }
+        }
+        // The token in the request's query is not the key (only the header is: URLs end up in logs).
+        let r = ask(&host, &format!("/data/sub/x.ply?token={token}"), "");
+        assert_eq!(r.status, 401, "{host}: query token");
+
+        let r = ask(
+            &host,
+            "/data/sub/x.ply",
+            &format!("X-Silvr-Token: {token}\r\n"),
+        );
+        assert_eq!(
+            (r.status, &r.body),
+            (200, &f.ply),
+            "{host}: the right token"
+        );
+        let r = ask(
+            &host,
+            "/data/sub/x.ply",
+            &format!("x-silvr-token: {token}\r\nRange: bytes=-5\r\n"),
+        );
+        assert_eq!(
+            (r.status, r.body.as_slice()),
+            (206, &f.ply[f.ply.len() - 5..])
+        );
+    }
+}
+
+#[test]
+fn a_token_the_user_gives_is_required_on_loopback_too() {
+    let f = fixture();
+    let token = "lab-key_0123456789";
+    let server = Server::start(&f.data, &["--token", token]);
+    let open = server.line();
+    assert_eq!(link_token(&open), token, "{open}");
+    assert_eq!(server.get("/data/sub/x.ply").status, 401);
+    let r = server.get_with("/data/sub/x.ply", &format!("X-Silvr-Token: {token}"));
+    assert_eq!((r.status, &r.body), (200, &f.ply));
+    // Loopback keeps its DNS-rebinding check.
+    let r = send_bytes(
+        server.port,
+        format!(
+            "GET / HTTP/1.1\r\nHost: evil.example:{}\r\n\r\n",
+            server.port
+        )
+        .as_bytes(),
+    );
+    assert_eq!(r.status, 421);
+
+    let out = refused(&f.data, &["--token", "short"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--token"), "{err}");
 }
