@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Fuzzes the parsers of untrusted input with cargo-fuzz (libFuzzer) for a bounded time each:
 #   scripts/fuzz.sh [SECONDS_EACH=600] [TARGET ...]
-#   targets: cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar
+#   targets: cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar http_head
 # Runs on stable Rust with `--sanitizer none` (the parsers are safe Rust: the fuzzer hunts panics, hangs,
 # overflow checks — debug assertions are on — and runaway allocation, capped by -rss_limit_mb). Installs
 # cargo-fuzz when missing. Seeds: fuzz/seeds/<target> (committed); the growing corpus and any crash
@@ -11,7 +11,7 @@ cd "$(dirname "$0")/.."
 secs="${1:-600}"
 [ $# -gt 0 ] && shift
 targets=("$@")
-[ ${#targets[@]} -gt 0 ] || targets=(cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar)
+[ ${#targets[@]} -gt 0 ] || targets=(cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar http_head)
 command -v cargo-fuzz >/dev/null || { echo "[fuzz] cargo install cargo-fuzz"; cargo install -q cargo-fuzz --locked; }
 # cargo-fuzz builds with its own flags: keep its artefacts apart from the workspace's target dir.
 export CARGO_TARGET_DIR="${SILVR_FUZZ_TARGET_DIR:-$PWD/fuzz/target}"
