@@ -481,10 +481,11 @@ export function viewerSuite(driver) {
     });
 
     if (driver.serve) {
-      test('silvr serve serves the studio and a reconstruction; its link loads it', async () => {
+      /** Starts `silvr serve` on the fixtures (the debug build) and reads the link it prints. */
+      const silvrServe = async (args = []) => {
         const silvr = join(process.env.CARGO_TARGET_DIR || join(ROOT, 'target'), 'debug', 'silvr');
         assert.ok(existsSync(silvr), `no ${silvr}: build the workspace first`);
-        const child = spawn(silvr, ['serve', FIXTURES, '--port', '0', '--studio', DIST], { stdio: ['ignore', 'pipe', 'pipe'] });
+        const child = spawn(silvr, ['serve', FIXTURES, '--port', '0', '--studio', DIST, ...args], { stdio: ['ignore', 'pipe', 'pipe'] });
         try {
           const link = await new Promise((ok, fail) => {
             let out = '';
@@ -499,6 +500,16 @@ export function viewerSuite(driver) {
             });
             child.on('exit', (c) => fail(new Error(`silvr serve exited (${c}): ${out}`)));
           });
+          return { child, link };
+        } catch (e) {
+          child.kill();
+          throw e;
+        }
+      };
+
+      test('silvr serve serves the studio and a reconstruction; its link loads it', async () => {
+        const { child, link } = await silvrServe();
+        try {
           assert.match(link, /#src=/);
           const { page, log } = await driver.newPage(browser);
           await driver.goto(page, link);
@@ -506,6 +517,46 @@ export function viewerSuite(driver) {
           await layersLoaded(page, 3);
           const names = await driver.evaluate(page, () => [...document.querySelectorAll('#layers li')].map((l) => l.textContent));
           assert.ok(names.some((n) => n.startsWith('points.ply')), names.join('\n'));
+          noErrors(log);
+          await page.close();
+        } finally {
+          child.kill();
+        }
+      });
+
+      test('silvr serve off loopback: the link carries the key to the data, and share links leave it out', async () => {
+        const { child, link } = await silvrServe(['--bind', '0.0.0.0']);
+        try {
+          assert.match(link, /^http:\/\/127\.0\.0\.1:\d+\/\?token=[0-9a-f]{32}#src=/);
+          const token = new URL(link).searchParams.get('token');
+
+          // Without the token the studio still starts, but each source is refused, and the page says why.
+          {
+            const { page } = await driver.newPage(browser);
+            await driver.goto(page, link.replace(/\?token=[^#]*/, ''));
+            await driver.waitFor(page, () => document.body.dataset.state !== 'loading', null, STARTUP_TIMEOUT_MS);
+            await driver.waitFor(page, () => document.querySelectorAll('#view-messages li').length >= 1, null, STEP_TIMEOUT_MS);
+            const messages = await driver.evaluate(page, () => [...document.querySelectorAll('#view-messages li')].map((l) => l.textContent).join('\n'));
+            assert.match(messages, /401/, messages);
+            assert.match(messages, /access token/, messages);
+            assert.equal(await driver.evaluate(page, () => document.querySelectorAll('#layers li').length), 0);
+            await page.close();
+          }
+
+          // With it: the worker's fetches carry it; the address bar keeps it when the hash is rewritten.
+          const { page, log } = await driver.newPage(browser);
+          await driver.goto(page, link);
+          await driver.waitFor(page, () => document.body.dataset.state !== 'loading', null, STARTUP_TIMEOUT_MS);
+          await layersLoaded(page, 3);
+          await setValue(page, '#size', '3');
+          await driver.waitFor(page, () => /(^|&|#)size=3(&|$)/.test(location.hash), null, STEP_TIMEOUT_MS);
+          assert.equal(await driver.evaluate(page, () => new URLSearchParams(location.search).get('token')), token);
+          await driver.evaluate(page, () => document.querySelector('#share').click());
+          await driver.waitFor(page, () => document.querySelector('#share-out').dataset.link !== undefined, null, STEP_TIMEOUT_MS);
+          const shared = await driver.evaluate(page, () => document.querySelector('#share-out').dataset.link);
+          assert.ok(!shared.includes(token), shared);
+          assert.ok(!shared.includes('token='), shared);
+          assert.match(shared, /#src=.*size=3/, shared);
           noErrors(log);
           await page.close();
         } finally {
