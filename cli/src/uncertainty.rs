@@ -271,6 +271,20 @@ pub fn evaluate(
     // scored on the same evaluated points.
     let mut cloud = read_ply(points)?;
     add_raw_fields(&mut cloud, |_| Some(&fisher));
+    // BayesRays' per-ray read-out of the same Fisher (1/(H/N + 1e-4/L³): what log_std meant before
+    // 2026-12-04), for its AUSE beside the metric read-out's on the same points.
+    let n = fisher.rays.max(1) as f32;
+    let per_ray = Fisher {
+        colour: fisher.colour.iter().map(|h| h / n).collect(),
+        depth: fisher.depth.iter().map(|h| h / n).collect(),
+        prior: 1e-4 / (fisher.cells as f64).powi(3),
+        calibration: uncertainty::Calibration::RAW,
+        ..fisher.clone()
+    };
+    let old = per_ray.read_out_metric(Posterior::Raw, &cloud.positions);
+    for m in Modality::ALL {
+        cloud.set_scalar(&format!("per_ray_{}", m.field()), old.of(m).to_vec());
+    }
     let truth = eval::GroundTruth::load(gt_dir)?;
     let ev = truth.evaluate(&cloud, &opts)?;
     let errors = &ev.rec_to_gt;
@@ -300,6 +314,13 @@ pub fn evaluate(
             &dir.join(format!("error_vs_{}.png", m.name())),
             &plot::png_bytes(&img),
         )?;
+    }
+    for m in Modality::ALL {
+        if let Some(u) = ev.reconstruction.scalar(&format!("per_ray_{}", m.field())) {
+            if let Some(s) = sparsify::sparsification(errors, u) {
+                out["ause_per_ray_readout"][m.name()] = s.ause.into();
+            }
+        }
     }
     let random = sparsify::random_ause(errors, 5, 17);
     out["ause_random"] = random.into();
