@@ -9,6 +9,11 @@
 //! It reads `ascii`, `binary_little_endian` and `binary_big_endian`, takes x/y/z (any numeric type),
 //! red/green/blue and nx/ny/nz when all three of a group are present, keeps every other scalar vertex
 //! property as a named f32 scalar, and skips other elements (faces, edges…), list properties included.
+//! [`PlyReadOptions`] narrows what is kept (the studio's worker decodes only what it shows).
+//!
+//! Untrusted sizes: every element count is bounded by the bytes left in the file before anything is
+//! reserved, and the vertex buffers are reserved fallibly (`try_reserve_exact`), so a count the memory
+//! cannot hold (a 32-bit browser heap, for one) is a [`PlyError::TooLarge`], never an abort.
 
 use glam::{DAffine3, DVec3, Vec3};
 use std::collections::HashMap;
@@ -433,6 +438,14 @@ pub enum PlyError {
         property: String,
         reason: String,
     },
+    /// A buffer a (plausible) size needs could not be reserved: the memory cannot hold the file.
+    #[error("{file}: too large for this memory: {bytes} bytes for {what} could not be allocated")]
+    TooLarge {
+        file: String,
+        /// What the buffer was for (`2147483647 positions`).
+        what: String,
+        bytes: u64,
+    },
     #[error("{file}: no vertex element with x, y and z properties")]
     MissingXyz { file: String },
     #[error("{file}: cannot write point cloud: {reason}")]
@@ -706,16 +719,55 @@ enum Target {
     Skip,
 }
 
+/// Which vertex properties [`read_ply_bytes_with`] keeps. Positions are always read; what is not kept
+/// is skipped in the data without being decoded or stored.
+#[derive(Clone, Copy, Debug)]
+pub struct PlyReadOptions<'a> {
+    /// red/green/blue, when all three are present.
+    pub colours: bool,
+    /// nx/ny/nz, when all three are present. When `false` they are skipped (not kept as scalars).
+    pub normals: bool,
+    /// The other scalar properties to keep: `None` keeps every one, `Some(names)` only those named.
+    pub scalars: Option<&'a [&'a str]>,
+}
+
+impl Default for PlyReadOptions<'_> {
+    /// Everything (what [`read_ply`] and [`read_ply_bytes`] keep).
+    fn default() -> Self {
+        Self {
+            colours: true,
+            normals: true,
+            scalars: None,
+        }
+    }
+}
+
+impl<'a> PlyReadOptions<'a> {
+    /// Positions, colours and the named scalars only (no normals).
+    pub fn only(scalars: &'a [&'a str]) -> Self {
+        Self {
+            colours: true,
+            normals: false,
+            scalars: Some(scalars),
+        }
+    }
+
+    fn keeps_scalar(&self, name: &str) -> bool {
+        self.scalars.is_none_or(|s| s.contains(&name))
+    }
+}
+
 /// Maps the vertex element's properties to cloud fields. Returns targets, scalar names, and whether
-/// colours / normals are complete.
-fn vertex_targets(el: &Element) -> (Vec<Target>, Vec<String>, bool, bool) {
+/// colours / normals are complete and kept.
+fn vertex_targets(el: &Element, opts: &PlyReadOptions) -> (Vec<Target>, Vec<String>, bool, bool) {
     let has = |n: &str| {
         el.props
             .iter()
             .any(|p| p.name == n && matches!(p.kind, PropKind::Scalar(_)))
     };
-    let colors = has("red") && has("green") && has("blue");
-    let normals = has("nx") && has("ny") && has("nz");
+    let colors = opts.colours && has("red") && has("green") && has("blue");
+    let normal_props = has("nx") && has("ny") && has("nz");
+    let normals = opts.normals && normal_props;
     let mut names = Vec::new();
     let targets = el
         .props
@@ -734,6 +786,9 @@ fn vertex_targets(el: &Element) -> (Vec<Target>, Vec<String>, bool, bool) {
                 "nx" if normals => Target::Normal(0),
                 "ny" if normals => Target::Normal(1),
                 "nz" if normals => Target::Normal(2),
+                "nx" | "ny" | "nz" if normal_props && !opts.normals => Target::Skip,
+                "red" | "green" | "blue" if !opts.colours => Target::Skip,
+                name if !opts.keeps_scalar(name) => Target::Skip,
                 name => {
                     names.push(name.to_string());
                     Target::Scalar(names.len() - 1)
@@ -768,17 +823,34 @@ struct VertexSink {
     normal: [f32; 3],
 }
 
+/// An empty vector with room for `count` items, or [`PlyError::TooLarge`] when the memory cannot hold it.
+fn try_vec<T>(count: u64, what: &str, file: &str) -> Result<Vec<T>, PlyError> {
+    let too_large = || PlyError::TooLarge {
+        file: file.to_string(),
+        what: format!("{count} {what}"),
+        bytes: count.saturating_mul(std::mem::size_of::<T>() as u64),
+    };
+    let n = usize::try_from(count).map_err(|_| too_large())?;
+    let mut v = Vec::new();
+    v.try_reserve_exact(n).map_err(|_| too_large())?;
+    Ok(v)
+}
+
 impl VertexSink {
-    fn new(el: &Element, capacity: usize) -> Self {
-        let (targets, names, colors, normals) = vertex_targets(el);
+    /// The sink of `el`'s `count` items; every buffer is reserved up front, fallibly.
+    fn new(el: &Element, opts: &PlyReadOptions, file: &str) -> Result<Self, PlyError> {
+        let (targets, names, colors, normals) = vertex_targets(el, opts);
+        let n = el.count;
+        let mut scalars = Vec::new();
+        for name in names {
+            let v = try_vec(n, &format!("values of '{name}'"), file)?;
+            scalars.push((name, v));
+        }
         let cloud = PointCloud {
-            positions: Vec::with_capacity(capacity),
-            colors: colors.then(|| Vec::with_capacity(capacity)),
-            normals: normals.then(|| Vec::with_capacity(capacity)),
-            scalars: names
-                .into_iter()
-                .map(|n| (n, Vec::with_capacity(capacity)))
-                .collect(),
+            positions: try_vec(n, "positions", file)?,
+            colors: colors.then(|| try_vec(n, "colours", file)).transpose()?,
+            normals: normals.then(|| try_vec(n, "normals", file)).transpose()?,
+            scalars,
         };
         let types = el
             .props
@@ -788,14 +860,14 @@ impl VertexSink {
                 PropKind::List { .. } => None,
             })
             .collect();
-        Self {
+        Ok(Self {
             cloud,
             targets,
             types,
             pos: [0.0; 3],
             color: [0; 3],
             normal: [0.0; 3],
-        }
+        })
     }
 
     #[inline]
@@ -823,18 +895,32 @@ impl VertexSink {
     }
 }
 
-/// Reads a PLY file (see the module docs for what is kept). The whole file is read into memory.
+/// Reads a PLY file (see the module docs for what is kept). The whole file is read into memory
+/// (fallibly: a file larger than the memory is a [`PlyError::TooLarge`]).
 pub fn read_ply(path: &Path) -> Result<PointCloud, PlyError> {
     let file = path.display().to_string();
-    let bytes = fs::read(path).map_err(|source| PlyError::Io {
+    let io = |source| PlyError::Io {
         file: file.clone(),
         source,
-    })?;
+    };
+    let mut f = File::open(path).map_err(io)?;
+    let len = f.metadata().map_err(io)?.len();
+    let mut bytes: Vec<u8> = try_vec(len, "bytes of the file", &file)?;
+    io::Read::read_to_end(&mut f, &mut bytes).map_err(io)?;
     read_ply_bytes(&bytes, &file)
 }
 
 /// Parses PLY bytes (e.g. a file dropped into the browser); `name` is used in error messages.
 pub fn read_ply_bytes(bytes: &[u8], name: &str) -> Result<PointCloud, PlyError> {
+    read_ply_bytes_with(bytes, name, &PlyReadOptions::default())
+}
+
+/// [`read_ply_bytes`] keeping only what `opts` asks for: the rest is skipped, never decoded or stored.
+pub fn read_ply_bytes_with(
+    bytes: &[u8],
+    name: &str,
+    opts: &PlyReadOptions,
+) -> Result<PointCloud, PlyError> {
     let header = parse_header(bytes, name)?;
     let vertex = header.elements.iter().position(|e| e.name == "vertex");
     let Some(vi) = vertex else {
@@ -843,7 +929,7 @@ pub fn read_ply_bytes(bytes: &[u8], name: &str) -> Result<PointCloud, PlyError> 
         });
     };
     let el = &header.elements[vi];
-    let (targets, ..) = vertex_targets(el);
+    let (targets, ..) = vertex_targets(el, opts);
     for k in 0..3 {
         if !targets.contains(&Target::Pos(k)) {
             return Err(PlyError::MissingXyz {
@@ -853,9 +939,9 @@ pub fn read_ply_bytes(bytes: &[u8], name: &str) -> Result<PointCloud, PlyError> 
     }
     let data = &bytes[header.data_start..];
     match header.format {
-        PlyFormat::Ascii => read_ascii(data, &header.elements, vi, name),
-        PlyFormat::BinaryLe => read_binary(data, &header.elements, vi, false, name),
-        PlyFormat::BinaryBe => read_binary(data, &header.elements, vi, true, name),
+        PlyFormat::Ascii => read_ascii(data, &header.elements, vi, opts, name),
+        PlyFormat::BinaryLe => read_binary(data, &header.elements, vi, opts, false, name),
+        PlyFormat::BinaryBe => read_binary(data, &header.elements, vi, opts, true, name),
     }
 }
 
@@ -863,6 +949,7 @@ fn read_binary(
     data: &[u8],
     elements: &[Element],
     vertex: usize,
+    opts: &PlyReadOptions,
     big_endian: bool,
     file: &str,
 ) -> Result<PointCloud, PlyError> {
@@ -913,15 +1000,19 @@ fn read_binary(
             }
             continue;
         }
-        let mut sink = VertexSink::new(el, el.count as usize);
+        let mut sink = VertexSink::new(el, opts, file)?;
         for i in 0..el.count {
             for (pi, p) in el.props.iter().enumerate() {
                 match p.kind {
                     PropKind::Scalar(t) => {
-                        let b = data
-                            .get(pos..pos + t.size())
-                            .ok_or_else(|| truncated(el, i))?;
-                        sink.set(pi, t.decode(b, big_endian));
+                        if sink.targets[pi] != Target::Skip {
+                            let b = data
+                                .get(pos..pos + t.size())
+                                .ok_or_else(|| truncated(el, i))?;
+                            sink.set(pi, t.decode(b, big_endian));
+                        } else if pos + t.size() > data.len() {
+                            return Err(truncated(el, i));
+                        }
                         pos += t.size();
                     }
                     PropKind::List { .. } => {
@@ -965,6 +1056,7 @@ fn read_ascii(
     data: &[u8],
     elements: &[Element],
     vertex: usize,
+    opts: &PlyReadOptions,
     file: &str,
 ) -> Result<PointCloud, PlyError> {
     let text = std::str::from_utf8(data).map_err(|e| PlyError::BadValue {
@@ -1001,7 +1093,9 @@ fn read_ascii(
         if el.props.is_empty() {
             continue;
         }
-        let mut sink = (ei == vertex).then(|| VertexSink::new(el, el.count as usize));
+        let mut sink = (ei == vertex)
+            .then(|| VertexSink::new(el, opts, file))
+            .transpose()?;
         for i in 0..el.count {
             for (pi, p) in el.props.iter().enumerate() {
                 let mut next = |what: &str| -> Result<f64, PlyError> {
@@ -1337,6 +1431,104 @@ mod tests {
             }
             let _ = read_ply_bytes(&b, "fuzz.ply");
         }
+    }
+
+    #[test]
+    fn options_keep_only_what_is_asked() {
+        let c = sample_cloud(30, 5);
+        let bin = write_ply_bytes(&c).unwrap();
+        let mut ascii = String::from(
+            "ply\nformat ascii 1.0\nelement vertex 30\nproperty double x\nproperty double y\n\
+             property double z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n\
+             property float nx\nproperty float ny\nproperty float nz\nproperty float uncertainty\n\
+             property float error_m\nend_header\n",
+        );
+        for i in 0..30 {
+            let (p, k, n) = (
+                c.positions[i],
+                c.colors.as_ref().unwrap()[i],
+                c.normals.as_ref().unwrap()[i],
+            );
+            ascii.push_str(&format!(
+                "{:?} {:?} {:?} {} {} {} {:?} {:?} {:?} {:?} {:?}\n",
+                p.x,
+                p.y,
+                p.z,
+                k[0],
+                k[1],
+                k[2],
+                n.x,
+                n.y,
+                n.z,
+                c.scalar("uncertainty").unwrap()[i],
+                c.scalar("error_m").unwrap()[i]
+            ));
+        }
+        for bytes in [&bin[..], ascii.as_bytes()] {
+            let only =
+                read_ply_bytes_with(bytes, "o.ply", &PlyReadOptions::only(&["error_m"])).unwrap();
+            assert_eq!(only.positions, c.positions);
+            assert_eq!(only.colors, c.colors);
+            assert_eq!(only.normals, None, "normals are not asked for");
+            assert_eq!(
+                only.scalars.len(),
+                1,
+                "{:?}",
+                only.scalars.iter().map(|s| &s.0).collect::<Vec<_>>()
+            );
+            assert_eq!(only.scalar("error_m"), c.scalar("error_m"));
+            let none = PlyReadOptions {
+                colours: false,
+                scalars: Some(&[]),
+                ..PlyReadOptions::default()
+            };
+            let bare = read_ply_bytes_with(bytes, "b.ply", &none).unwrap();
+            assert_eq!(
+                (bare.colors, bare.normals.is_some(), bare.scalars.len()),
+                (None, true, 0)
+            );
+            // The default keeps everything.
+            assert_eq!(
+                read_ply_bytes_with(bytes, "a.ply", &PlyReadOptions::default()).unwrap(),
+                read_ply_bytes(bytes, "a.ply").unwrap()
+            );
+        }
+        // Skipped properties are still bounds-checked: a truncated file stays an error.
+        for cut in [1, 2, 5] {
+            let e = read_ply_bytes_with(
+                &bin[..bin.len() - cut],
+                "cut.ply",
+                &PlyReadOptions::only(&[]),
+            );
+            assert!(e.is_err(), "{cut}");
+        }
+        let mut listed = b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\n\
+            property float y\nproperty float z\nproperty list uchar int idx\nproperty float s\nend_header\n"
+            .to_vec();
+        listed.extend_from_slice(&[0; 12 + 1 + 4]); // xyz, an empty list, s
+        listed.extend_from_slice(&[0; 12]);
+        listed.push(3); // a list of three
+        listed.extend_from_slice(&[0; 12 + 2]); // and `s` cut short
+        let e = read_ply_bytes_with(&listed, "cut.ply", &PlyReadOptions::only(&[]));
+        assert!(matches!(e, Err(PlyError::Truncated { .. })), "{e:?}");
+    }
+
+    /// A count the memory cannot hold is an error, not an abort (`Vec::with_capacity` would abort).
+    #[test]
+    fn buffers_too_large_for_memory_are_errors() {
+        let e = try_vec::<DVec3>(u64::MAX / 4, "positions", "huge.ply").unwrap_err();
+        assert!(matches!(e, PlyError::TooLarge { .. }), "{e:?}");
+        let e = e.to_string();
+        assert!(
+            e.starts_with("huge.ply: too large") && e.contains("4611686018427387903 positions"),
+            "{e}"
+        );
+        assert!(
+            try_vec::<DVec3>(1000, "positions", "ok.ply")
+                .unwrap()
+                .capacity()
+                >= 1000
+        );
     }
 
     #[test]

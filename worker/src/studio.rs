@@ -3,7 +3,7 @@
 
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
-use silvr_core::pointcloud::{read_ply_bytes, write_ply_bytes};
+use silvr_core::pointcloud::{read_ply_bytes_with, write_ply_bytes, PlyReadOptions};
 use silvr_core::uncertainty::filter::default_threshold;
 use silvr_core::viewer::{
     Colouring, GpuLayer, LayerDraw, ViewCloud, ERROR_FIELD, UNCERTAINTY_FIELDS,
@@ -83,15 +83,22 @@ pub struct Layer {
     pub gpu: Option<GpuLayer>,
 }
 
+/// The scalar properties the studio colours and filters by; the others are not decoded at all.
+pub const SHOWN_FIELDS: [&str; 4] = [
+    UNCERTAINTY_FIELDS[0],
+    UNCERTAINTY_FIELDS[1],
+    UNCERTAINTY_FIELDS[2],
+    ERROR_FIELD,
+];
+
 /// Parses a PLY file into a layer (the core's reader: one reader for native and browser). Errors name
 /// the source and the problem.
 pub fn parse_layer(bytes: &[u8], name: &str, source: &str, index: u32) -> Result<Layer, String> {
-    let mut cloud = read_ply_bytes(bytes, name).map_err(|e| format!("{name}: {e}"))?;
-    // Only what the studio colours and filters by: a splat file's sixty properties would each cost a
-    // sorted copy and a GPU buffer.
-    cloud
-        .scalars
-        .retain(|(n, _)| UNCERTAINTY_FIELDS.contains(&n.as_str()) || n == ERROR_FIELD);
+    // Only what the studio shows is decoded (no normals; of the scalars only [`SHOWN_FIELDS`]): a
+    // splat file's sixty properties would otherwise each cost a buffer while parsing, a sorted copy
+    // and a GPU buffer.
+    let opts = PlyReadOptions::only(&SHOWN_FIELDS);
+    let cloud = read_ply_bytes_with(bytes, name, &opts).map_err(|e| format!("{name}: {e}"))?;
     if cloud.is_empty() {
         return Err(format!("{name}: the file holds no points"));
     }
@@ -389,7 +396,7 @@ impl Layers {
 #[cfg(all(test, not(target_arch = "wasm32")))]
 mod tests {
     use super::*;
-    use silvr_core::pointcloud::PointCloud;
+    use silvr_core::pointcloud::{read_ply_bytes, PointCloud};
 
     fn ply(n: usize) -> Vec<u8> {
         let mut c = PointCloud::new();
