@@ -115,6 +115,11 @@ enum Command {
         /// Keyframes within this many metres of a neighbouring submap's are trained by both.
         #[arg(long, default_value_t = 2.0)]
         overlap: f64,
+        /// Let the dataset's files lie anywhere under this folder (default: inside the dataset's own
+        /// folder only). silvr's submap and poses outputs read their world's images from beside them:
+        /// give a folder holding both.
+        #[arg(long)]
+        data_root: Option<PathBuf>,
     },
     /// Refine a SLAM prior's camera poses by structure from motion bootstrapped from it: SIFT features,
     /// matching gated by the prior's epipolar geometry, tracks, triangulation, bundle adjustment with the
@@ -268,6 +273,11 @@ enum Command {
         /// Rays per batch of that pass.
         #[arg(long, default_value_t = 4096)]
         uncertainty_rays: usize,
+        /// Let the dataset's files lie anywhere under this folder (default: inside the dataset's own
+        /// folder only). silvr's submap and poses outputs read their world's images from beside them:
+        /// give a folder holding both.
+        #[arg(long)]
+        data_root: Option<PathBuf>,
     },
     /// Training throughput and time to quality: field samples/s (forward + backward), rays/s per step,
     /// seconds to a target training PSNR. JSON on stdout.
@@ -384,6 +394,10 @@ struct UncertaintyCmd {
     /// Dataset the model was trained on (default: the one train.json names).
     #[arg(long)]
     dataset: Option<PathBuf>,
+    /// Let the dataset's files lie anywhere under this folder (default: inside its own folder only):
+    /// for a model of a submap or poses output, a folder holding it and its world.
+    #[arg(long)]
+    data_root: Option<PathBuf>,
     /// Ground truth (a dataset with gt/cloud.ply) for sparsification curves, AUSE and the filtered
     /// cloud's scores.
     #[arg(long)]
@@ -428,6 +442,7 @@ fn uncertainty_cmd(c: UncertaintyCmd) -> Result<()> {
     let summary = uncertainty::run(&uncertainty::UncertaintyArgs {
         model_dir: c.model.clone(),
         dataset: c.dataset,
+        data_root: c.data_root.clone(),
         backend: c.backend,
         config,
         quiet: false,
@@ -438,6 +453,7 @@ fn uncertainty_cmd(c: UncertaintyCmd) -> Result<()> {
             &c.model,
             &gt,
             &trained_on,
+            c.data_root.as_deref(),
             &GeometryOptions::default(),
             &summary,
         )?;
@@ -522,7 +538,17 @@ fn main() {
             max_images,
             count,
             overlap,
-        } => submaps::run(&dataset, &out, &method, max_images, count, overlap).map(|_| ()),
+            data_root,
+        } => submaps::run(
+            &dataset,
+            &out,
+            &method,
+            max_images,
+            count,
+            overlap,
+            data_root.as_deref(),
+        )
+        .map(|_| ()),
         Command::Eval {
             reconstruction,
             gt,
@@ -554,9 +580,11 @@ fn main() {
             depth_sigma,
             uncertainty_batches,
             uncertainty_rays,
+            data_root,
         } => train::run(&train::TrainArgs {
             depth_sigma: depth_sigma.map(|v| (v[0], v[1])),
             dataset,
+            data_root,
             mode,
             steps,
             rays,
@@ -660,6 +688,27 @@ pub(crate) fn synthetic_gt_file(image: &Path, kind: &str) -> Option<PathBuf> {
     let rest: PathBuf = parts[k + 1..].iter().collect();
     let file = world.join("gt").join(kind).join(rest);
     file.is_file().then_some(file)
+}
+
+/// The folder a dataset's files may be read from when it is silvr's own output beside its world: the
+/// nearest folder holding both `dataset` (its transforms file's folder) and `out`. Submaps and the poses
+/// stage name the world's images `../../dataset/images/…`, which a folder confined to itself refuses
+/// (`silvr_core::source::Dir`).
+pub(crate) fn data_root(dataset: &Path, out: &Path) -> Result<PathBuf> {
+    let json = transforms_file(dataset);
+    let folder = json
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let real = |p: &Path| {
+        p.canonicalize()
+            .with_context(|| format!("resolving {}", p.display()))
+    };
+    let (a, b) = (real(folder)?, real(out)?);
+    Ok(a.ancestors()
+        .find(|anc| b.starts_with(anc))
+        .unwrap_or(Path::new("/"))
+        .to_path_buf())
 }
 
 /// The transforms.json a command named (a dataset folder means the one inside it). Plain files only:
@@ -1126,6 +1175,8 @@ fn demo(
             (file, Some(a.alignment))
         }
     };
+    // The poses stage's output names the world's images from beside it.
+    let root = data_root(&dataset, out)?;
     if let Some(a) = &alignment {
         eprintln!(
             "[demo] training on the {} poses ({}); geometry scored after their Sim(3) to the exact ones (scale {:.4})",
@@ -1171,6 +1222,7 @@ fn demo(
         let dir = out.join(key);
         let summary = train::run(&train::TrainArgs {
             dataset: train_on.clone(),
+            data_root: Some(root.clone()),
             mode,
             steps,
             rays,
@@ -1210,7 +1262,7 @@ fn demo(
         }
         methods[key] = v;
         if let Some(u) = &summary.uncertainty {
-            let block = uncertainty::evaluate(&dir, &dataset, &train_on, &geo, u)?;
+            let block = uncertainty::evaluate(&dir, &dataset, &train_on, Some(&root), &geo, u)?;
             eprintln!(
                 "[demo] uncertainty ({:.1} s): AUSE colour {:.3}, depth {:.3}, combined {:.3} (random {:.3})",
                 u.seconds,
@@ -1241,7 +1293,12 @@ fn demo(
     }
     // The WGSL training step against the CPU reference on this dataset, from the trained SiLVR field
     // (not its initialisation): losses and gradients of one batch on both engines.
-    let check = train::crosscheck(&train_on, &out.join("silvr").join("checkpoint.ckpt"), 1024)?;
+    let check = train::crosscheck(
+        &train_on,
+        Some(&root),
+        &out.join("silvr").join("checkpoint.ckpt"),
+        1024,
+    )?;
     eprintln!("[demo] WGSL step vs CPU reference: {check}");
     let max_diff = check["grad_rel_l2"].as_f64().unwrap_or(f64::INFINITY);
     let loss_diff = check["loss_rel_diff"].as_f64().unwrap_or(f64::INFINITY);

@@ -347,6 +347,8 @@ fn run_task(m: &Manifest, k: usize, say: bool) -> Result<()> {
             .map_err(|e: String| anyhow::anyhow!("--mode: {e}"))?;
         train::run(&TrainArgs {
             dataset: m.task_dataset(k),
+            // The submaps (and the poses stage's output) name the world's images from beside them.
+            data_root: Some(crate::data_root(&m.dataset, &m.out)?),
             mode,
             steps: s.steps,
             rays: s.rays,
@@ -519,6 +521,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
             c.max_images,
             c.count,
             c.overlap,
+            Some(&crate::data_root(&c.dataset, &out)?),
         )?;
         serde_json::to_value(&p)?
     };

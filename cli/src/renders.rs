@@ -271,6 +271,8 @@ pub fn run(job: &RenderJob) -> Result<RendersReport> {
         silvr_core::train::Backend::Wgpu(g) => Some(g),
         silvr_core::train::Backend::Cpu => None,
     };
+    // The submaps name their world's images from beside them.
+    let root = crate::data_root(job.dataset, job.out)?;
     for (k, (name, dir)) in job.submaps.iter().enumerate() {
         let wanted: Vec<(usize, usize)> = chosen
             .iter()
@@ -282,8 +284,9 @@ pub fn run(job: &RenderJob) -> Result<RendersReport> {
             continue;
         }
         let dataset = job.out.join("submaps").join(name);
-        let mut data = TrainData::load(
+        let mut data = TrainData::load_within(
             &dataset,
+            Some(&root),
             &LoadOptions {
                 downscale: 1,
                 skip_lidar: true,

@@ -14,6 +14,7 @@ pub fn run(
     max_images: Option<usize>,
     count: Option<usize>,
     overlap: f64,
+    data_root: Option<&Path>,
 ) -> Result<silvr_core::submap::Plan> {
     use silvr_core::submap::{self, Limit, Method, SubmapOptions};
     let method = match method {
@@ -44,7 +45,10 @@ pub fn run(
     // Lidar co-visibility: what --method covis cuts by, and what scores either cut.
     let has_lidar = frames.iter().any(|f| f.depth_file_path.is_some());
     let voxels = if has_lidar {
-        let src = silvr_core::source::Dir(root_dir.clone());
+        let src = match data_root {
+            Some(r) => silvr_core::source::Dir::within(&root_dir, r)?,
+            None => silvr_core::source::Dir::new(&root_dir),
+        };
         Some(submap::lidar_voxels(&src, &frames, &json)?)
     } else {
         None
@@ -105,14 +109,17 @@ pub fn run(
         )
     });
     let covis = format!("{covis}{tracks}");
+    // A submap names the dataset's images from beside it: training reads them under a folder holding both.
+    let root = crate::data_root(dataset, out)?;
     eprintln!(
-        "{} submaps of {} keyframes by {:?} (cut weight {:.1}{covis}) in {}; train one with: silvr train {}",
+        "{} submaps of {} keyframes by {:?} (cut weight {:.1}{covis}) in {}; train one with: silvr train {} --data-root {}",
         plan.submaps.len(),
         plan.nodes.len(),
         plan.method,
         plan.cut_weight,
         out.display(),
-        out.join("submap_00").display()
+        out.join("submap_00").display(),
+        root.display()
     );
     Ok(plan)
 }

@@ -23,6 +23,9 @@ pub fn model_preset(name: &str, images: usize) -> Result<ModelConfig> {
 
 pub struct TrainArgs {
     pub dataset: PathBuf,
+    /// The folder the dataset's files may lie anywhere under (`None`: its own folder; see
+    /// [`TrainData::load_within`]).
+    pub data_root: Option<PathBuf>,
     pub mode: Mode,
     pub steps: u32,
     pub rays: usize,
@@ -63,8 +66,9 @@ pub struct TrainSummary {
 
 pub fn run(a: &TrainArgs) -> Result<TrainSummary> {
     let t_load = Instant::now();
-    let data = TrainData::load(
+    let data = TrainData::load_within(
         &a.dataset,
+        a.data_root.as_deref(),
         &LoadOptions {
             downscale: a.downscale,
             skip_lidar: a.mode == Mode::Vision,
@@ -454,11 +458,17 @@ fn profile(a: &BenchArgs, steps: u32) -> Result<()> {
 /// checkpoint (same parameters, same rays, the batch and schedule of the checkpoint's step): the loss of
 /// each, and per tensor the gradient difference relative to the CPU gradient (L2 norm, and largest entry). Run
 /// by the demo so that the engine it ships is checked on the data it reports, after training.
-pub fn crosscheck(dataset: &Path, checkpoint: &Path, rays: usize) -> Result<serde_json::Value> {
+pub fn crosscheck(
+    dataset: &Path,
+    data_root: Option<&Path>,
+    checkpoint: &Path,
+    rays: usize,
+) -> Result<serde_json::Value> {
     let gpu = pollster::block_on(Gpu::new(GpuOptions::default()))?;
     let ck = Checkpoint::load(checkpoint)?;
-    let data = TrainData::load(
+    let data = TrainData::load_within(
         dataset,
+        data_root,
         &LoadOptions {
             downscale: 1,
             skip_lidar: ck.header.config.mode == Mode::Vision,

@@ -28,6 +28,8 @@ use std::rc::Rc;
 pub struct UncertaintyArgs {
     pub model_dir: PathBuf,
     pub dataset: Option<PathBuf>,
+    /// The folder the dataset's files may lie anywhere under (`None`: its own folder).
+    pub data_root: Option<PathBuf>,
     pub backend: String,
     pub config: UncertaintyConfig,
     pub quiet: bool,
@@ -57,8 +59,9 @@ pub fn run(a: &UncertaintyArgs) -> Result<UncertaintySummary> {
         Some(d) => d.clone(),
         None => dataset_of(&a.model_dir)?,
     };
-    let data = TrainData::load(
+    let data = TrainData::load_within(
         &dataset,
+        a.data_root.as_deref(),
         &LoadOptions {
             downscale: 1,
             skip_lidar: false,
@@ -254,6 +257,7 @@ pub fn evaluate(
     dir: &Path,
     gt_dir: &Path,
     trained_on: &Path,
+    data_root: Option<&Path>,
     opts: &GeometryOptions,
     summary: &UncertaintySummary,
 ) -> Result<serde_json::Value> {
@@ -376,7 +380,7 @@ pub fn evaluate(
     out["sigma_means"] = SIGMA_MEANS.into();
     out["calibration"] = serde_json::to_value(&fisher.calibration)?;
     out["prior_sigma_m"] = fisher.prior_sigma_m().into();
-    if let Some(v) = by_label(trained_on, &fisher)? {
+    if let Some(v) = by_label(trained_on, data_root, &fisher)? {
         out["by_label"] = v;
     }
     out["seconds"] = summary.seconds.into();
@@ -511,10 +515,15 @@ pub fn reliability_block(
 /// range, so comparing surfaces in the same band separates what their texture does to the uncertainty from
 /// where they stand (the road runs under every camera, the facades are metres away). `None` for datasets
 /// without that ground truth.
-pub fn by_label(dataset: &Path, fisher: &Fisher) -> Result<Option<serde_json::Value>> {
+pub fn by_label(
+    dataset: &Path,
+    data_root: Option<&Path>,
+    fisher: &Fisher,
+) -> Result<Option<serde_json::Value>> {
     use silvr_core::synthetic::world::Label;
-    let data = TrainData::load(
+    let data = TrainData::load_within(
         dataset,
+        data_root,
         &LoadOptions {
             downscale: 1,
             skip_lidar: true,

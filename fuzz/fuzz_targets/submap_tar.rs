@@ -6,7 +6,7 @@ use silvr_core::source::Files;
 use silvr_core::train::data::{LoadOptions, TrainData};
 
 fuzz_target!(|data: &[u8]| {
-    if let Ok(files) = Files::from_tar("fuzz.tar", data).and_then(Files::rooted_at_transforms) {
+    if let Ok(files) = Files::from_tar("fuzz.tar", data.to_vec()).and_then(Files::rooted_at_transforms) {
         let _ = TrainData::load_from(&files, "transforms.json", &LoadOptions::default());
     }
 });

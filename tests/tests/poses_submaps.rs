@@ -208,6 +208,9 @@ fn the_prior_drifts_within_its_documented_size_and_submaps_train_in_place() {
         "0",
         "--out",
         tmp.path().join("trained").to_str().unwrap(),
+        // The submap names the world's images from beside it (both in the temporary folder).
+        "--data-root",
+        std::env::temp_dir().to_str().unwrap(),
     ]);
 
     // Co-visibility (from the lidar depth): the same street cut where less structure is shared, and
@@ -719,6 +722,9 @@ fn poses_refines_the_prior_and_names_a_textureless_image() {
             method,
             "--count",
             "2",
+            // The poses output names the world's lidar images from beside it.
+            "--data-root",
+            std::env::temp_dir().to_str().unwrap(),
         ]);
         let m = json(&dir.join("manifest.json"));
         if method == "covis" {

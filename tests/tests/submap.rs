@@ -60,7 +60,7 @@ fn packed_submap_trains_on_wgsl_like_its_folder_and_leaves_the_browser_fixtures(
     assert!(said.contains("packed"), "{said}");
 
     // The archive holds what training reads and nothing of the ground truth or raw sweeps.
-    let files = Files::from_tar("micro.tar", &std::fs::read(&tar).unwrap()).unwrap();
+    let files = Files::from_tar("micro.tar", std::fs::read(&tar).unwrap()).unwrap();
     let names: Vec<&str> = files.names().collect();
     assert!(names.contains(&"transforms.json") && names.contains(&"calib/rig.json"));
     assert_eq!(

@@ -147,7 +147,7 @@ pub(crate) async fn train_files(
         };
         let is_tar = files.len() == 1 && path.to_ascii_lowercase().ends_with(".tar");
         if is_tar {
-            match Files::from_tar(path, &bytes) {
+            match Files::from_tar(path, bytes) {
                 Ok(f) => out = f,
                 Err(e) => return fail(path, e.to_string()),
             }
@@ -183,7 +183,7 @@ pub(crate) async fn train_url(
         Err(e) => return fail(&url, e),
     };
     let name = url_file_name(&url, "submap.tar");
-    match Files::from_tar(&name, &bytes) {
+    match Files::from_tar(&name, bytes) {
         Ok(files) => run(host, id, files, settings, None).await,
         Err(e) => fail(&url, e.to_string()),
     }
@@ -249,7 +249,8 @@ async fn run_inner(
         .map_err(|e| (name.clone(), e.to_string()))?;
     // The dataset is kept in the origin-private file system beside the checkpoints, so a reload can
     // resume without the user dropping the files again.
-    let saved = opfs::write(DATASET, &files.to_tar()).await;
+    // An archive is written back as it was read (no second copy of it in memory).
+    let saved = opfs::write(DATASET, &files.as_tar()).await;
     if let Err(e) = &saved {
         log::warn!("the dataset could not be kept for resuming after a reload: {e}");
     }
@@ -540,7 +541,7 @@ pub(crate) async fn resume_saved(host: Host, id: u32) {
         (Err(e), _) | (_, Err(e)) => return fail("the saved run", e),
         _ => return fail("the saved run", "its dataset or checkpoint is gone"),
     };
-    match Files::from_tar(&meta.source, &dataset) {
+    match Files::from_tar(&meta.source, dataset) {
         Ok(files) => run(host, id, files, meta.settings, Some(ck)).await,
         Err(e) => fail("the saved run", e.to_string()),
     }

@@ -223,9 +223,20 @@ pub fn resize_nearest<T: Copy>(px: Vec<T>, w: u32, h: u32, f: u32) -> Vec<T> {
 }
 
 impl TrainData {
-    /// Loads `dataset`: a folder holding transforms.json, the JSON itself, or a `silvr pack` archive.
+    /// Loads `dataset`: a folder holding transforms.json, the JSON itself, or a `silvr pack` archive. A
+    /// folder's files must lie inside it ([`crate::source::Dir`]).
     pub fn load(dataset: &Path, opts: &LoadOptions) -> Result<TrainData, DataError> {
-        let (src, json) = crate::source::open(dataset)?;
+        Self::load_within(dataset, None, opts)
+    }
+
+    /// [`Self::load`], with a folder's files allowed anywhere under `root` (an ancestor of the folder):
+    /// silvr's submap and poses outputs name their world's images `../../dataset/images/…`.
+    pub fn load_within(
+        dataset: &Path,
+        root: Option<&Path>,
+        opts: &LoadOptions,
+    ) -> Result<TrainData, DataError> {
+        let (src, json) = crate::source::open_within(dataset, root)?;
         Self::load_from(src.as_ref(), &json, opts)
     }
 
