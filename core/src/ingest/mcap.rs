@@ -8,7 +8,7 @@
 
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::BufReader;
+use std::io::{BufReader, Read};
 use std::panic::AssertUnwindSafe;
 use std::path::Path;
 
@@ -203,7 +203,7 @@ impl BagMessage {
 /// Streams the messages of an MCAP file in file order.
 pub struct BagReader {
     file: String,
-    inner: mcap::io::MessageReader<BufReader<File>>,
+    inner: mcap::io::MessageReader<Box<dyn Read + Send>>,
     index: u64,
     failed: bool,
 }
@@ -217,18 +217,30 @@ impl BagReader {
         };
         let f = File::open(path).map_err(io)?;
         let len = f.metadata().map_err(io)?.len();
+        Ok(Self::from_reader(file, BufReader::new(f), len))
+    }
+
+    /// Streams the messages of the MCAP that `source` yields (`len` bytes: it sets the record length
+    /// limit, see [`MAX_RECORD`]); `name` names it in errors. [`Self::open`] reads a file this way; the
+    /// fuzz target reads bytes in memory.
+    pub fn from_reader(
+        name: impl Into<String>,
+        source: impl Read + Send + 'static,
+        len: u64,
+    ) -> Self {
         let limit = len.clamp(MIN_RECORD, MAX_RECORD);
         // Check each chunk's CRC before yielding any of its messages, so a corrupt chunk yields nothing
         // and its records are never parsed.
         let options = LinearReaderOptions::default()
             .with_prevalidate_chunk_crcs(true)
             .with_record_length_limit(usize::try_from(limit).unwrap_or(usize::MAX));
-        Ok(Self {
-            file,
-            inner: mcap::io::MessageReader::new_with_options(BufReader::new(f), options),
+        let source: Box<dyn Read + Send> = Box::new(source);
+        Self {
+            file: name.into(),
+            inner: mcap::io::MessageReader::new_with_options(source, options),
             index: 0,
             failed: false,
-        })
+        }
     }
 
     /// The file name used in errors.

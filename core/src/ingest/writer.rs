@@ -344,4 +344,102 @@ mod tests {
             .collect();
         assert_eq!(left, vec![std::ffi::OsString::from("t.mcap")], "{left:?}");
     }
+
+    /// The messages of the MCAP fuzz target's seeds: a static transform and an odometry message.
+    fn seed_messages() -> Vec<(&'static str, &'static str, Vec<u8>)> {
+        use crate::ingest::ros::Odometry;
+        let header = |t: f64, frame: &str| Header {
+            stamp: ros_time(t),
+            frame_id: frame.into(),
+        };
+        let tf = TfMessage {
+            transforms: vec![TransformStamped {
+                header: header(1.0, "base_link"),
+                child_frame_id: "lidar".into(),
+                transform: Se3::new(DQuat::from_rotation_z(0.5), DVec3::new(0.0, 0.0, 0.124)),
+            }],
+        };
+        let odo = Odometry {
+            header: header(1.5, "odom"),
+            child_frame_id: "base_link".into(),
+            pose: Se3::new(DQuat::IDENTITY, DVec3::new(1.0, 2.0, 3.0)),
+            pose_covariance: [0.0; 36],
+            linear: DVec3::X,
+            angular: DVec3::Z,
+            twist_covariance: [0.0; 36],
+        };
+        vec![
+            ("/tf_static", TfMessage::MSG, tf.encode()),
+            ("/odom", Odometry::MSG, odo.encode()),
+        ]
+    }
+
+    fn seed_dir() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz/seeds/mcap")
+    }
+
+    /// Writes the MCAP fuzz target's seeds: `zstd.mcap` by [`BagWriter`] (zstd chunks, summary, indexes)
+    /// and `plain.mcap` by the `mcap` crate without chunks or compression (records the fuzzer can
+    /// mutate directly). Regenerate with
+    /// `cargo test -p silvr-core --lib write_mcap_fuzz_seeds -- --ignored`.
+    #[test]
+    #[ignore]
+    fn write_mcap_fuzz_seeds() {
+        std::fs::create_dir_all(seed_dir()).unwrap();
+        let mut w = BagWriter::create(&seed_dir().join("zstd.mcap")).unwrap();
+        for (k, (topic, ty, payload)) in seed_messages().iter().enumerate() {
+            w.write(topic, ty, ros_time(1.0 + k as f64), payload)
+                .unwrap();
+        }
+        w.finish().unwrap();
+        let mut plain = mcap::WriteOptions::new()
+            .profile("ros2")
+            .use_chunks(false)
+            .compression(None)
+            .create(std::io::Cursor::new(Vec::new()))
+            .unwrap();
+        for (k, (topic, ty, payload)) in seed_messages().iter().enumerate() {
+            let text = schema_text(ty).unwrap();
+            let schema = plain.add_schema(ty, "ros2msg", text.as_bytes()).unwrap();
+            let channel = plain
+                .add_channel(schema, topic, "cdr", &BTreeMap::new())
+                .unwrap();
+            let t = 1_000_000_000 * (k as u64 + 1);
+            let header = mcap::records::MessageHeader {
+                channel_id: channel,
+                sequence: k as u32,
+                log_time: t,
+                publish_time: t,
+            };
+            plain.write_to_known_channel(&header, payload).unwrap();
+        }
+        plain.finish().unwrap();
+        std::fs::write(
+            seed_dir().join("plain.mcap"),
+            plain.into_inner().into_inner(),
+        )
+        .unwrap();
+    }
+
+    /// The seeds are small, read as bags, and hold the messages they were written with.
+    #[test]
+    fn the_mcap_fuzz_seeds_are_current_bags() {
+        for name in ["zstd.mcap", "plain.mcap"] {
+            let bytes = std::fs::read(seed_dir().join(name)).unwrap();
+            assert!(bytes.len() < 8 << 10, "{name}: {} bytes", bytes.len());
+            let n = bytes.len() as u64;
+            let msgs: Vec<_> = BagReader::from_reader(name, std::io::Cursor::new(bytes), n)
+                .collect::<Result<_, _>>()
+                .unwrap();
+            let want = seed_messages();
+            assert_eq!(msgs.len(), want.len(), "{name}");
+            for (m, (topic, ty, payload)) in msgs.iter().zip(&want) {
+                assert_eq!(
+                    (m.topic(), m.schema_name(), m.data()),
+                    (*topic, *ty, &payload[..])
+                );
+                assert!(matches!(m.decode(), Ok(Ok(_))), "{name}: {topic}");
+            }
+        }
+    }
 }
