@@ -338,10 +338,12 @@ impl Drop for RemoveOnDrop {
 pub struct ImportCmd {
     /// Source layout: `dgp` (a DGP scene folder: scene_*.json, calibration/, point_cloud/, rgb/),
     /// `nerfstudio` (a transforms.json, e.g. from nerfstudio, instant-ngp or SiLVR's Spires tools) or
-    /// `spires` (an Oxford Spires sequence: sensor.yaml, raw/camN/, processed/vilens-slam/) or `colmap` (a
-    /// text model folder; photos from --images).
+    /// `spires` (an Oxford Spires sequence: sensor.yaml, raw/camN/, processed/vilens-slam/), `colmap` (a
+    /// text model folder; photos from --images) or `kitti` (a KITTI odometry sequence folder
+    /// `sequences/NN`: image_2/, image_3/, velodyne/, calib.txt, times.txt; ground truth from
+    /// `poses/NN.txt` two levels up or `poses.txt` inside, or --poses).
     pub format: String,
-    /// The source folder (dgp, spires) or transforms.json (nerfstudio).
+    /// The source folder (dgp, spires, kitti) or transforms.json (nerfstudio).
     pub source: PathBuf,
     /// Rig file for spires (default: SOURCE/sensor.yaml).
     #[arg(long)]
@@ -354,7 +356,17 @@ pub struct ImportCmd {
     pub out: PathBuf,
     #[arg(long)]
     pub overwrite: bool,
-    /// Integer image downscale (intrinsics follow; dgp).
+    /// kitti: the trajectory to use instead of the ground truth beside the sequence (KITTI format:
+    /// T_world_cam0 of frame i on line i).
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
+    /// kitti: only frames FIRST..=LAST (KITTI frame numbers), e.g. `--frames 0:99`.
+    #[arg(long, value_parser = parse_frame_range)]
+    pub frames: Option<(usize, usize)>,
+    /// kitti: every N-th of the selected frames.
+    #[arg(long, default_value_t = 1)]
+    pub every: usize,
+    /// Integer image downscale (intrinsics follow; dgp, kitti).
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
     /// Metres per depth PNG unit (nerfstudio; default: the file's depth_unit_scale_factor, else 0.001).
@@ -363,6 +375,23 @@ pub struct ImportCmd {
     /// The depth PNGs hold range along each ray instead of z-depth (nerfstudio).
     #[arg(long)]
     pub depth_is_range: bool,
+}
+
+/// `FIRST:LAST` (inclusive) → the pair.
+fn parse_frame_range(s: &str) -> Result<(usize, usize), String> {
+    let (a, b) = s
+        .split_once(':')
+        .ok_or_else(|| format!("{s:?}: expected FIRST:LAST, e.g. 0:99"))?;
+    let n = |t: &str| {
+        t.trim()
+            .parse::<usize>()
+            .map_err(|_| format!("{t:?} is not a frame number"))
+    };
+    let (a, b) = (n(a)?, n(b)?);
+    if a > b {
+        return Err(format!("{s:?}: FIRST is after LAST"));
+    }
+    Ok((a, b))
 }
 
 #[derive(clap::Args)]
@@ -465,8 +494,47 @@ pub fn import(c: ImportCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Result<()
             println!("{}", serde_json::to_string_pretty(&s)?);
             Ok(())
         }
+        "kitti" => {
+            use silvr_core::ingest::kitti_import as kitti;
+            anyhow::ensure!(c.every >= 1, "--every must be at least 1");
+            anyhow::ensure!(c.downscale >= 1, "--downscale must be at least 1");
+            let gpu = open_gpu()?;
+            let start = Instant::now();
+            let s = pollster::block_on(kitti::import_kitti(
+                &c.source,
+                &c.out,
+                c.overwrite,
+                kitti::KittiOptions {
+                    downscale: c.downscale,
+                    poses: c.poses.clone(),
+                    frames: c.frames,
+                    every: c.every,
+                    ..Default::default()
+                },
+                &gpu,
+                &mut |done, total| eprintln!("[import] frame {done}/{total}"),
+            ))
+            .with_context(|| {
+                format!("importing {} into {}", c.source.display(), c.out.display())
+            })?;
+            eprintln!(
+                "[import] done in {:.1} s: {} keyframes, {} images, poses from {}; no deskew (KITTI \
+                 sweeps are motion-compensated already)",
+                start.elapsed().as_secs_f64(),
+                s.keyframes,
+                s.images,
+                s.poses
+            );
+            for why in &s.skipped {
+                eprintln!("[import] skipped frame {why}");
+            }
+            println!("{}", serde_json::to_string_pretty(&s)?);
+            Ok(())
+        }
         other => {
-            anyhow::bail!("unknown import format {other:?} (supported: dgp, nerfstudio, spires)")
+            anyhow::bail!(
+                "unknown import format {other:?} (supported: dgp, nerfstudio, spires, colmap, kitti)"
+            )
         }
     }
 }

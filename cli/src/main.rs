@@ -68,8 +68,9 @@ enum Command {
     /// A ROS 2 bag (MCAP) + rig file → a dataset: deskewed lidar, per-camera depth, normals and sky masks,
     /// poses, transforms.json. `--info` lists a bag's topics.
     Ingest(ingest::IngestCmd),
-    /// Another dataset layout → a dataset: `dgp` (a DGP scene: lidar .npz sweeps, pinhole cameras) or
-    /// `nerfstudio` (a transforms.json with optional depth / normal / sky images).
+    /// Another dataset layout → a dataset: `dgp` (a DGP scene: lidar .npz sweeps, pinhole cameras),
+    /// `nerfstudio` (a transforms.json with optional depth / normal / sky images), `spires`, `colmap` or
+    /// `kitti` (a KITTI odometry sequence: stereo colour, velodyne, calib.txt, ground-truth poses).
     Import(ingest::ImportCmd),
     /// A dataset → another layout (`colmap`: a text model of the cameras and posed images).
     Export(ingest::ExportCmd),

@@ -1,5 +1,7 @@
-//! KITTI velodyne scans (`velodyne/NNNNNN.bin`) and nuScenes lidar sweeps (`*.pcd.bin`): headerless
-//! little-endian `f32` records, one per point.
+//! KITTI's files: velodyne scans (`velodyne/NNNNNN.bin`, and nuScenes lidar sweeps `*.pcd.bin`, the same
+//! headerless little-endian `f32` records, one per point), and the text files beside them: calibration
+//! (`calib.txt`, `calib_*.txt`: `KEY: numbers` lines) and `times.txt` (one stamp per line). The text
+//! parsers work on `&str` (browser included); errors name the file and the line.
 //!
 //! KITTI (<https://www.cvlibs.net/datasets/kitti/eval_odometry.php>) writes 4 floats per point, `x y z
 //! reflectance` in the sensor frame; nuScenes writes 5, `x y z intensity ring`. Both are selected with a
@@ -10,10 +12,11 @@
 
 use std::path::Path;
 
-use glam::DVec3;
+use glam::{DMat3, DVec3};
 use thiserror::Error;
 
 use crate::dataset::{write_atomic, DatasetError};
+use crate::geometry::Se3;
 use crate::pointcloud::PointCloud;
 
 /// Floats per point of a KITTI `.bin`: x, y, z, reflectance.
@@ -141,12 +144,384 @@ pub fn write_bin(path: &Path, cloud: &PointCloud, stride: usize) -> Result<(), B
     Ok(())
 }
 
+/// Errors of KITTI's text files (`calib.txt`, `calib_*.txt`, `times.txt`); every variant names the file,
+/// and the line where there is one.
+#[derive(Debug, Error, PartialEq)]
+pub enum KittiTextError {
+    #[error("{file}, line {line}: {reason}")]
+    Line {
+        file: String,
+        line: usize,
+        reason: String,
+    },
+    #[error("{file}: {reason}")]
+    Invalid { file: String, reason: String },
+}
+
+fn line_err(file: &str, line: usize, reason: impl Into<String>) -> KittiTextError {
+    KittiTextError::Line {
+        file: file.to_string(),
+        line,
+        reason: reason.into(),
+    }
+}
+
+/// Non-blank lines with their 1-based numbers, a leading byte-order mark removed.
+fn text_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
+    text.strip_prefix('\u{feff}')
+        .unwrap_or(text)
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l.trim()))
+        .filter(|(_, l)| !l.is_empty())
+}
+
+/// One `KEY: value` line of a calibration file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CalibEntry {
+    pub key: String,
+    /// 1-based line number, for errors about the value.
+    pub line: usize,
+    /// The text after the colon, trimmed. Numbers are parsed when asked for ([`Calib::numbers`]), because
+    /// the raw release also keeps text there (`calib_time: 09-Jan-2012 13:57:47`).
+    pub value: String,
+}
+
+/// A KITTI calibration file: the odometry `calib.txt` (`P0`…`P3`, `Tr`) or the raw release's
+/// `calib_cam_to_cam.txt` / `calib_velo_to_cam.txt` / `calib_imu_to_velo.txt`, all `KEY: numbers` lines.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Calib {
+    /// The file's name, for errors.
+    pub file: String,
+    pub entries: Vec<CalibEntry>,
+}
+
+/// A rectified camera's projection `P = K · [I | t]` (KITTI's `P2`, `P_rect_02`): its pinhole intrinsics
+/// and `t`, where the camera sits relative to the reference (rectified cam0) frame: `p_cam = p_ref + t`.
+/// For the colour cameras `t.x` is minus the baseline to cam0 (≈ +0.06 m for cam2, −0.47 m for cam3).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Projection {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub t: DVec3,
+}
+
+/// Parses calibration text; `name` is used in errors. Every non-blank line must be `KEY: value` with a
+/// key of letters, digits and `_`, each key once (a repeated key would make the file ambiguous).
+pub fn parse_calib(text: &str, name: &str) -> Result<Calib, KittiTextError> {
+    let mut entries: Vec<CalibEntry> = Vec::new();
+    for (n, line) in text_lines(text) {
+        let Some((key, value)) = line.split_once(':') else {
+            return Err(line_err(name, n, "expected 'KEY: values' (no colon)"));
+        };
+        let key = key.trim();
+        if key.is_empty() || !key.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
+            let shown: String = key.chars().take(40).collect();
+            return Err(line_err(
+                name,
+                n,
+                format!("'{shown}' is not a calibration key (letters, digits and _)"),
+            ));
+        }
+        if let Some(first) = entries.iter().find(|e| e.key == key) {
+            return Err(line_err(
+                name,
+                n,
+                format!("{key} repeats the entry of line {}", first.line),
+            ));
+        }
+        entries.push(CalibEntry {
+            key: key.to_string(),
+            line: n,
+            value: value.trim().to_string(),
+        });
+    }
+    if entries.is_empty() {
+        return Err(KittiTextError::Invalid {
+            file: name.to_string(),
+            reason: "no 'KEY: values' lines (empty calibration file)".into(),
+        });
+    }
+    Ok(Calib {
+        file: name.to_string(),
+        entries,
+    })
+}
+
+impl Calib {
+    /// The entry of `key`, if the file has one.
+    pub fn get(&self, key: &str) -> Option<&CalibEntry> {
+        self.entries.iter().find(|e| e.key == key)
+    }
+
+    fn entry(&self, key: &str) -> Result<&CalibEntry, KittiTextError> {
+        self.get(key).ok_or_else(|| KittiTextError::Invalid {
+            file: self.file.clone(),
+            reason: format!(
+                "no '{key}:' line (keys present: {})",
+                self.entries
+                    .iter()
+                    .map(|e| e.key.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        })
+    }
+
+    /// The finite numbers of `key`.
+    pub fn numbers(&self, key: &str) -> Result<Vec<f64>, KittiTextError> {
+        let e = self.entry(key)?;
+        e.value
+            .split_whitespace()
+            .enumerate()
+            .map(|(i, tok)| match tok.parse::<f64>() {
+                Ok(v) if v.is_finite() => Ok(v),
+                Ok(_) => Err(line_err(
+                    &self.file,
+                    e.line,
+                    format!("{key}: value {} '{tok}' is not finite", i + 1),
+                )),
+                Err(_) => Err(line_err(
+                    &self.file,
+                    e.line,
+                    format!(
+                        "{key}: value {} '{}' is not a number",
+                        i + 1,
+                        tok.chars().take(40).collect::<String>()
+                    ),
+                )),
+            })
+            .collect()
+    }
+
+    /// Exactly `n` numbers of `key` (`what` says what they are, for the error).
+    pub fn exactly(&self, key: &str, n: usize, what: &str) -> Result<Vec<f64>, KittiTextError> {
+        let v = self.numbers(key)?;
+        if v.len() != n {
+            return Err(line_err(
+                &self.file,
+                self.entry(key)?.line,
+                format!("{key} has {} numbers; {what} needs {n}", v.len()),
+            ));
+        }
+        Ok(v)
+    }
+
+    /// `key` as a rectified projection `K · [I | t]` (3 × 4, row-major): zero skew, positive focal
+    /// lengths, last row `0 0 1 t_z`.
+    pub fn projection(&self, key: &str) -> Result<Projection, KittiTextError> {
+        let p = self.exactly(key, 12, "a 3 × 4 projection matrix")?;
+        let line = self.entry(key)?.line;
+        let bad = |reason: String| line_err(&self.file, line, format!("{key}: {reason}"));
+        let (fx, s, cx) = (p[0], p[1], p[2]);
+        let (z, fy, cy) = (p[4], p[5], p[6]);
+        if !(fx > 0.0 && fy > 0.0) {
+            return Err(bad(format!(
+                "focal lengths must be positive (fx = {fx}, fy = {fy})"
+            )));
+        }
+        let tiny = 1e-9 * fx;
+        if s.abs() > 1e-6 * fx
+            || z.abs() > tiny
+            || p[8].abs() > tiny
+            || p[9].abs() > tiny
+            || (p[10] - 1.0).abs() > 1e-9
+        {
+            return Err(bad(
+                "not a rectified pinhole projection K·[I|t] (expected fx 0 cx · 0 fy cy · 0 0 1 ·)"
+                    .into(),
+            ));
+        }
+        // P · (X, 1) = K X + (p03, p13, p23): the fourth column is K t.
+        let tz = p[11];
+        let ty = (p[7] - cy * tz) / fy;
+        let tx = (p[3] - s * ty - cx * tz) / fx;
+        Ok(Projection {
+            fx,
+            fy,
+            cx,
+            cy,
+            t: DVec3::new(tx, ty, tz),
+        })
+    }
+
+    /// `key` as a rigid transform `[R | t]` (3 × 4, row-major; `Tr` of the odometry `calib.txt`), the
+    /// rotation block checked and projected onto the nearest rotation as for KITTI poses.
+    pub fn rigid(&self, key: &str) -> Result<Se3, KittiTextError> {
+        let m = self.exactly(key, 12, "a 3 × 4 [R | t] matrix")?;
+        let r = [m[0], m[1], m[2], m[4], m[5], m[6], m[8], m[9], m[10]];
+        self.rotation_translation(key, &r, DVec3::new(m[3], m[7], m[11]))
+    }
+
+    /// The raw release's split form: `r_key` (3 × 3, row-major) and `t_key` (3) as one rigid transform.
+    pub fn rigid_rt(&self, r_key: &str, t_key: &str) -> Result<Se3, KittiTextError> {
+        let r = self.exactly(r_key, 9, "a 3 × 3 rotation")?;
+        let t = self.exactly(t_key, 3, "a translation")?;
+        let r: [f64; 9] = r.try_into().expect("nine numbers");
+        self.rotation_translation(r_key, &r, DVec3::new(t[0], t[1], t[2]))
+    }
+
+    fn rotation_translation(
+        &self,
+        key: &str,
+        r: &[f64; 9],
+        t: DVec3,
+    ) -> Result<Se3, KittiTextError> {
+        let m = DMat3::from_cols(
+            DVec3::new(r[0], r[3], r[6]),
+            DVec3::new(r[1], r[4], r[7]),
+            DVec3::new(r[2], r[5], r[8]),
+        );
+        let line = self.entry(key)?.line;
+        let q = super::poses::nearest_rotation(m)
+            .map_err(|reason| line_err(&self.file, line, format!("{key}: {reason}")))?;
+        Ok(Se3::new(q, t))
+    }
+}
+
+/// Parses a KITTI `times.txt`: one stamp (seconds, finite) per non-blank line, strictly increasing (a
+/// repeated or backwards stamp means a corrupted or concatenated file; the error names both lines).
+/// Returns the stamps in line order: entry i belongs to frame i.
+pub fn parse_times(text: &str, name: &str) -> Result<Vec<f64>, KittiTextError> {
+    let mut stamps: Vec<f64> = Vec::new();
+    let mut last_line = 0;
+    for (n, line) in text_lines(text) {
+        let mut toks = line.split_whitespace();
+        let (Some(tok), None) = (toks.next(), toks.next()) else {
+            return Err(line_err(name, n, "expected one number (seconds) per line"));
+        };
+        let t = match tok.parse::<f64>() {
+            Ok(v) if v.is_finite() => v,
+            Ok(_) => return Err(line_err(name, n, format!("stamp '{tok}' is not finite"))),
+            Err(_) => {
+                let shown: String = tok.chars().take(40).collect();
+                return Err(line_err(name, n, format!("stamp '{shown}' is not a number")));
+            }
+        };
+        if let Some(&prev) = stamps.last() {
+            if t <= prev {
+                return Err(line_err(
+                    name,
+                    n,
+                    format!(
+                        "stamp {t} is not after {prev} (line {last_line}); stamps must increase"
+                    ),
+                ));
+            }
+        }
+        stamps.push(t);
+        last_line = n;
+    }
+    if stamps.is_empty() {
+        return Err(KittiTextError::Invalid {
+            file: name.to_string(),
+            reason: "no stamps (empty times file)".into(),
+        });
+    }
+    Ok(stamps)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn floats(v: &[f32]) -> Vec<u8> {
         v.iter().flat_map(|x| x.to_le_bytes()).collect()
+    }
+
+    /// Sequence 00's calib.txt as released (P0, P1 trimmed to what the tests need).
+    const CALIB_00: &str = "P0: 7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 0.000000000000e+00 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00
+P2: 7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 4.538225000000e+01 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 -1.130887000000e-01 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 3.779761000000e-03
+P3: 7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 -3.372877000000e+02 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 2.369057000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 4.915215000000e-03
+Tr: 4.276802385584e-04 -9.999672484946e-01 -8.084491683471e-03 -1.198459927713e-02 -7.210626507497e-03 8.081198471645e-03 -9.999413164504e-01 -5.403984729748e-02 9.999738645903e-01 4.859485810390e-04 -7.206933692422e-03 -2.921968648686e-01
+";
+
+    #[test]
+    fn calib_gives_projections_and_the_velodyne_transform() {
+        let c = parse_calib(CALIB_00, "00/calib.txt").unwrap();
+        assert_eq!(c.entries.len(), 4);
+        assert_eq!(c.get("Tr").unwrap().line, 4);
+        let p2 = c.projection("P2").unwrap();
+        assert_eq!((p2.fx, p2.fy, p2.cx, p2.cy), (718.856, 718.856, 607.1928, 185.2157));
+        // The projection P2 maps a point exactly as K (X + t) does.
+        let x = DVec3::new(1.5, -0.7, 12.0);
+        let p = c.exactly("P2", 12, "P").unwrap();
+        let u = (p[0] * x.x + p[1] * x.y + p[2] * x.z + p[3]) / (p[8] * x.x + p[9] * x.y + p[10] * x.z + p[11]);
+        let v = (p[4] * x.x + p[5] * x.y + p[6] * x.z + p[7]) / (p[8] * x.x + p[9] * x.y + p[10] * x.z + p[11]);
+        let xc = x + p2.t;
+        assert!((p2.fx * xc.x / xc.z + p2.cx - u).abs() < 1e-9, "{u}");
+        assert!((p2.fy * xc.y / xc.z + p2.cy - v).abs() < 1e-9, "{v}");
+        // cam2 sits ~6 cm left of cam0, cam3 ~47 cm right: the stereo baseline is ~0.54 m.
+        let p3 = c.projection("P3").unwrap();
+        assert!((p2.t.x - 0.0599).abs() < 1e-3 && (p3.t.x + 0.4733).abs() < 1e-3, "{p2:?} {p3:?}");
+        assert_eq!(c.projection("P0").unwrap().t, DVec3::ZERO);
+        // Tr: velodyne → cam0; the lidar's forward axis (+x) is the camera's +z.
+        let tr = c.rigid("Tr").unwrap();
+        let fwd = tr.rot * DVec3::X;
+        assert!((fwd - DVec3::Z).length() < 0.02, "{fwd}");
+        assert!((tr.trans - DVec3::new(-0.01198, -0.05404, -0.29220)).length() < 1e-4);
+    }
+
+    #[test]
+    fn raw_calib_files_with_text_and_split_rotations() {
+        let text = "calib_time: 15-Mar-2012 11:37:16\nR: 7.533745e-03 -9.999714e-01 -6.166020e-04 1.480249e-02 7.280733e-04 -9.998902e-01 9.998621e-01 7.523790e-03 1.480755e-02\nT: -4.069766e-03 -7.631618e-02 -2.717806e-01\ndelta_f: 0.000000e+00 0.000000e+00\n";
+        let c = parse_calib(text, "calib_velo_to_cam.txt").unwrap();
+        assert_eq!(c.get("calib_time").unwrap().value, "15-Mar-2012 11:37:16");
+        let t = c.rigid_rt("R", "T").unwrap();
+        assert!((t.trans.z + 0.2717806).abs() < 1e-12);
+        // Text is refused only where numbers are asked for, naming the line.
+        let e = c.numbers("calib_time").unwrap_err().to_string();
+        assert_eq!(e, "calib_velo_to_cam.txt, line 1: calib_time: value 1 '15-Mar-2012' is not a number");
+    }
+
+    #[test]
+    fn corrupt_calib_is_refused_with_file_and_line() {
+        let err = |text: &str| parse_calib(text, "calib.txt").unwrap_err().to_string();
+        assert_eq!(err(""), "calib.txt: no 'KEY: values' lines (empty calibration file)");
+        assert_eq!(err("P0: 1 2\n\nP1 1 2 3\n"), "calib.txt, line 3: expected 'KEY: values' (no colon)");
+        assert!(err("P 0: 1\n").starts_with("calib.txt, line 1: 'P 0' is not a calibration key"));
+        assert_eq!(err("P0: 1\nTr: 2\nP0: 3\n"), "calib.txt, line 3: P0 repeats the entry of line 1");
+
+        let with = |line: &str| {
+            let text = CALIB_00.replace(CALIB_00.lines().nth(1).unwrap(), line);
+            parse_calib(&text, "seq/calib.txt").unwrap()
+        };
+        let e = with("P2: 1 0 2 0 0 1 2 0 0 0 1").projection("P2").unwrap_err().to_string();
+        assert_eq!(e, "seq/calib.txt, line 2: P2 has 11 numbers; a 3 × 4 projection matrix needs 12");
+        let e = with("P2: 700 0 600 0 0 700 NaN 0 0 0 1 0").projection("P2").unwrap_err().to_string();
+        assert_eq!(e, "seq/calib.txt, line 2: P2: value 7 'NaN' is not finite");
+        let e = with("P2: 700 0 600 0 0 700 x 0 0 0 1 0").projection("P2").unwrap_err().to_string();
+        assert_eq!(e, "seq/calib.txt, line 2: P2: value 7 'x' is not a number");
+        let e = with("P2: 700 0 600 0 0 -700 180 0 0 0 1 0").projection("P2").unwrap_err().to_string();
+        assert!(e.starts_with("seq/calib.txt, line 2: P2: focal lengths must be positive"), "{e}");
+        let e = with("P2: 700 3 600 0 0 700 180 0 0 0 1 0").projection("P2").unwrap_err().to_string();
+        assert!(e.starts_with("seq/calib.txt, line 2: P2: not a rectified pinhole"), "{e}");
+        let e = with("P2: 700 0 600 0 0 700 180 0 0.1 0 1 0").projection("P2").unwrap_err().to_string();
+        assert!(e.starts_with("seq/calib.txt, line 2: P2: not a rectified pinhole"), "{e}");
+        // A scaled rotation block in Tr is not a rigid transform.
+        let c = parse_calib("Tr: 2 0 0 0 0 2 0 0 0 0 2 0\n", "calib.txt").unwrap();
+        let e = c.rigid("Tr").unwrap_err().to_string();
+        assert!(e.starts_with("calib.txt, line 1: Tr: rotation block is not orthonormal"), "{e}");
+        let e = c.projection("P2").unwrap_err().to_string();
+        assert_eq!(e, "calib.txt: no 'P2:' line (keys present: Tr)");
+    }
+
+    #[test]
+    fn times_parse_and_corrupt_times_name_the_line() {
+        let t = parse_times("\u{feff}0.000000e+00\n1.037359e-01\n\n2.073381e-01\n", "times.txt").unwrap();
+        assert_eq!(t, vec![0.0, 0.1037359, 0.2073381]);
+        let err = |text: &str| parse_times(text, "00/times.txt").unwrap_err().to_string();
+        assert_eq!(err(""), "00/times.txt: no stamps (empty times file)");
+        assert_eq!(err("0\n0.1 0.2\n"), "00/times.txt, line 2: expected one number (seconds) per line");
+        assert_eq!(err("0\n0.1\nabc\n"), "00/times.txt, line 3: stamp 'abc' is not a number");
+        assert_eq!(err("0\ninf\n"), "00/times.txt, line 2: stamp 'inf' is not finite");
+        assert_eq!(
+            err("0\n0.2\n\n0.1\n"),
+            "00/times.txt, line 4: stamp 0.1 is not after 0.2 (line 2); stamps must increase"
+        );
+        assert!(err("0\n0\n").contains("line 2: stamp 0 is not after 0 (line 1)"));
     }
 
     #[test]

@@ -17,7 +17,9 @@
 //! - [`colmap`]: COLMAP text models (`cameras.txt`, `images.txt`, `points3D.txt`), read and written.
 //! - [`poses`]: trajectories from TUM, KITTI odometry, Oxford Spires `slam-poses.csv` and EuRoC `data.csv`
 //!   (with format detection), and writers for KITTI and Spires.
-//! - [`kitti`]: KITTI velodyne `.bin` scans and nuScenes `.pcd.bin` sweeps (headerless f32 records).
+//! - [`kitti`]: KITTI velodyne `.bin` scans and nuScenes `.pcd.bin` sweeps (headerless f32 records), and
+//!   KITTI's `calib.txt` / `calib_*.txt` and `times.txt`.
+//! - [`kitti_import`] (native only): a KITTI odometry sequence → the dataset layout.
 //!
 //! Every reader treats its input as untrusted: errors, never panics, and no allocation larger than the
 //! input justifies.
@@ -31,6 +33,8 @@ pub mod convert;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod dgp;
 pub mod kitti;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod kitti_import;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod mcap;
 pub mod npz;

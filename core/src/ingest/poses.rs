@@ -193,8 +193,9 @@ fn max_abs(m: DMat3) -> f64 {
     m.to_cols_array().iter().fold(0.0, |a, v| a.max(v.abs()))
 }
 
-/// The rotation nearest (Frobenius) to an almost-orthonormal block, or why the block is not a rotation.
-fn nearest_rotation(m: DMat3) -> Result<DQuat, String> {
+/// The rotation nearest (Frobenius) to an almost-orthonormal block, or why the block is not a rotation
+/// (also used for KITTI's calibration matrices, [`super::kitti::Calib::rigid`]).
+pub(crate) fn nearest_rotation(m: DMat3) -> Result<DQuat, String> {
     let dev = max_abs(m.transpose() * m - DMat3::IDENTITY);
     if dev > KITTI_ORTHONORMAL_TOLERANCE {
         return Err(format!(
