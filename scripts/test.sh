@@ -69,7 +69,7 @@ echo "== native tests (cargo test --workspace)"
 # (SILVR_TESTS_PREBUILT) instead of `cargo build -p silvr`, which resolves features for one package and
 # compiled naga, wgpu, image and our crates a second time.
 cargo build --workspace --all-targets
-SILVR_TESTS_PREBUILT=1 cargo test --workspace 2>&1 | tee "$logs/cargo-test.log"
+SILVR_TESTS_PREBUILT=1 cargo test --workspace --no-fail-fast 2>&1 | tee "$logs/cargo-test.log"
 
 echo "== evaluator cross-check against SciPy cKDTree (and scikit-image SSIM)"
 # In the virtual environment scripts/setup.sh made (Debian's own Python refuses `pip install`, PEP 668).

@@ -675,9 +675,10 @@ fn poses_refines_the_prior_and_names_a_textureless_image() {
         "{r}"
     );
     assert!(f(&r["poses"], "rmse_px") < 1.0, "{r}");
-    // The refined poses are put back in the prior's frame (metric scale, the prior's vertical): their
-    // alignment to the exact poses is the prior's within 0.2° and 0.2 % (measured 0.03°; fitting centres
-    // alone once let a straight path roll 3° about itself).
+    // The refined poses are put back in the prior's frame (the prior's vertical: their alignment's rotation
+    // is the prior's within 0.2°, measured 0.03°; fitting centres alone once let a straight path roll 3°
+    // about itself), then to the lidar's metric scale: within 1 % of the exact poses' (measured 0.5 %,
+    // the prior's 0.7 %).
     let rot = |v: &serde_json::Value| {
         let q = &v["alignment"]["rot"];
         glam::DQuat::from_xyzw(
@@ -688,11 +689,12 @@ fn poses_refines_the_prior_and_names_a_textureless_image() {
         )
     };
     let between = rot(prior).angle_between(rot(refined)).to_degrees();
-    let scales = f(&prior["alignment"], "scale") / f(&refined["alignment"], "scale");
+    let scale = f(&refined["alignment"], "scale");
     assert!(
-        between < 0.2 && (scales - 1.0).abs() < 2e-3,
-        "{between}° {scales}: {r}"
+        between < 0.2 && (scale - 1.0).abs() < 1e-2,
+        "{between}° {scale}: {r}"
     );
+    assert_eq!(r["poses"]["lidar_scale"]["applied"], true, "{r}");
     assert!(!tmp.path().join(".poses.partial").exists());
     let t = json(&out.join("transforms.json"));
     let frames = t["frames"].as_array().unwrap();

@@ -98,7 +98,7 @@ pub fn parse_layer(bytes: &[u8], name: &str, source: &str, index: u32) -> Result
     // splat file's sixty properties would otherwise each cost a buffer while parsing, a sorted copy
     // and a GPU buffer.
     let opts = PlyReadOptions::only(&SHOWN_FIELDS);
-    let cloud = read_ply_bytes_with(bytes, name, &opts).map_err(|e| format!("{name}: {e}"))?;
+    let cloud = read_ply_bytes_with(bytes, name, &opts).map_err(|e| e.to_string())?;
     if cloud.is_empty() {
         return Err(format!("{name}: the file holds no points"));
     }
@@ -482,6 +482,7 @@ mod tests {
             .err()
             .unwrap();
         assert!(e.starts_with("x.ply"), "{e}");
+        assert_eq!(e.matches("x.ply").count(), 1, "the file is named once: {e}");
         let mut b = ply(100);
         b.truncate(b.len() - 7);
         let e = parse_layer(&b, "cut.ply", "", 0).err().unwrap();
