@@ -4,7 +4,7 @@
 #   scripts/fuzz.sh --smoke [TARGET ...]    CI: every target built once, then each run for
 #                                           SILVR_FUZZ_SMOKE_SECS (default 10) seconds
 #   targets: cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar
-#            npz mcap http_head
+#            npz mcap http_head kitti_text
 # Runs on stable Rust with `--sanitizer none` (the parsers are safe Rust: the fuzzer hunts panics, hangs,
 # overflow checks — debug assertions are on — and runaway allocation, capped by -rss_limit_mb). Installs
 # cargo-fuzz when missing. Seeds: fuzz/seeds/<target> (committed); the growing corpus and any crash
@@ -12,7 +12,7 @@
 # or when a target does not build (2).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-all=(cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar npz mcap http_head)
+all=(cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar npz mcap http_head kitti_text)
 smoke=0
 if [ "${1:-}" = --smoke ]; then
   smoke=1
@@ -30,6 +30,10 @@ export CARGO_TARGET_DIR="${SILVR_FUZZ_TARGET_DIR:-$PWD/fuzz/target}"
 unset RUSTC_WORKSPACE_WRAPPER CLIPPY_ARGS
 mkdir -p fuzz/corpus
 flags=(--fuzz-dir fuzz -s none --debug-assertions)
+# The smoke builds unoptimised (`--dev`): its seconds of fuzzing need no speed, and CI's cold build of every
+# target (wgpu, naga, image and our crates under coverage instrumentation) drops from about 20 minutes to
+# what BENCHMARKS.md records.
+[ "$smoke" = 0 ] || flags+=(--dev)
 build() { # TARGET... (none: all of them, in one cargo build)
   local log="fuzz/corpus/${1:-all}.build.log" start
   start=$(date +%s)
