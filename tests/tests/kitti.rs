@@ -43,7 +43,11 @@ fn a_kitti_sequence_imports_with_its_rig_ground_truth_and_lidar_depth() {
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(out.status.success(), "{seq}: {err}");
         let s: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-        assert_eq!((s["keyframes"].as_u64(), s["images"].as_u64()), (Some(10), Some(20)), "{s}");
+        assert_eq!(
+            (s["keyframes"].as_u64(), s["images"].as_u64()),
+            (Some(10), Some(20)),
+            "{s}"
+        );
 
         // The trajectory, z-up: the car drives along the ground plane and its camera stays at its height.
         let base = read_tum(&ds.join("poses/base_tum.txt")).unwrap();
@@ -59,7 +63,10 @@ fn a_kitti_sequence_imports_with_its_rig_ground_truth_and_lidar_depth() {
         for cam in ["image_2", "image_3"] {
             let px = s["depth_pixels"][cam].as_f64().unwrap();
             // 10 keyframes of 620 × 188: the HDL-64E covers the lower ~half of the frame, sparsely.
-            assert!(px > 0.03 * 10.0 * 620.0 * 188.0, "{seq} {cam}: {px} depth pixels");
+            assert!(
+                px > 0.03 * 10.0 * 620.0 * 188.0,
+                "{seq} {cam}: {px} depth pixels"
+            );
         }
 
         // The sweeps, placed by the lidar poses, agree with each other: the road and walls of frame 0 are
@@ -75,11 +82,71 @@ fn a_kitti_sequence_imports_with_its_rig_ground_truth_and_lidar_depth() {
                 .collect()
         };
         let (a, b) = (world(0), world(9));
-        let mut d: Vec<f64> = b.iter().step_by(97).map(|p| nearest_within(&a, *p, 0.5)).collect();
+        let mut d: Vec<f64> = b
+            .iter()
+            .step_by(97)
+            .map(|p| nearest_within(&a, *p, 0.5))
+            .collect();
         d.sort_by(f64::total_cmp);
         let median = d[d.len() / 2];
-        assert!(median < 0.1, "{seq}: frame 9's returns lie {median} m (median) from frame 0's");
+        assert!(
+            median < 0.1,
+            "{seq}: frame 9's returns lie {median} m (median) from frame 0's"
+        );
     }
+}
+
+/// One sequence imported and trained briefly on WGSL: the real images and lidar are a dataset training reads
+/// like any other (the held-out frame's colour and depth improve on an untrained field's).
+#[test]
+fn an_imported_kitti_sequence_trains() {
+    let Some(seq) = silvr_tests::shared_data("real/kitti_odometry/sequences/00") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let ds = tmp.path().join("00");
+    let out = import(&seq, &ds, &["--downscale", "2"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let model = tmp.path().join("model");
+    let out = Command::new(build_silvr())
+        .arg("train")
+        .arg(&ds)
+        .args([
+            "--model",
+            "tiny",
+            "--steps",
+            "300",
+            "--rays",
+            "1024",
+            "--downscale",
+            "2",
+        ])
+        .args([
+            "--backend",
+            "wgpu",
+            "--render-views",
+            "1",
+            "--export-rays",
+            "20000",
+            "--out",
+        ])
+        .arg(&model)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    let t: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(model.join("train.json")).unwrap()).unwrap();
+    assert_eq!(t["backend"], "wgpu", "{t}");
+    // Measured 15.6 dB after 300 steps, 9.8 dB after one (2026-12-04, lavapipe).
+    let psnr = t["heldout_psnr_mean"].as_f64().unwrap();
+    assert!(psnr > 13.0, "held-out PSNR {psnr} dB: {t}");
+    let points = read_ply(&model.join("points.ply")).unwrap();
+    assert!(points.len() > 1000, "{} points", points.len());
 }
 
 #[test]
@@ -97,7 +164,10 @@ fn a_kitti_sequence_without_a_trajectory_is_refused_and_says_what_to_give() {
     let out = import(&copy, &tmp.path().join("ds"), &[]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{err}");
-    assert!(err.contains("no trajectory") && err.contains("--poses"), "{err}");
+    assert!(
+        err.contains("no trajectory") && err.contains("--poses"),
+        "{err}"
+    );
     assert!(!err.contains("panicked"), "{err}");
     assert!(!tmp.path().join("ds").exists(), "nothing is written");
 
@@ -105,8 +175,15 @@ fn a_kitti_sequence_without_a_trajectory_is_refused_and_says_what_to_give() {
     let short = tmp.path().join("short.txt");
     let gt = std::fs::read_to_string(seq.join("poses.txt")).unwrap();
     std::fs::write(&short, gt.lines().take(4).collect::<Vec<_>>().join("\n")).unwrap();
-    let out = import(&copy, &tmp.path().join("ds"), &["--poses", short.to_str().unwrap()]);
+    let out = import(
+        &copy,
+        &tmp.path().join("ds"),
+        &["--poses", short.to_str().unwrap()],
+    );
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{err}");
-    assert!(err.contains("short.txt") && err.contains("4 poses"), "{err}");
+    assert!(
+        err.contains("short.txt") && err.contains("4 poses"),
+        "{err}"
+    );
 }

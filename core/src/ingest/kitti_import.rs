@@ -32,7 +32,7 @@ use crate::dataset::{self, DatasetError, DatasetWriter};
 use crate::geometry::{Se3, Trajectory};
 use crate::gpu::{Gpu, GpuError};
 use crate::lidar::{images, normals, products};
-use crate::pointcloud::{write_ply_bytes, PointCloud};
+use crate::pointcloud::write_ply_bytes;
 use crate::rig::{Rig, RigCamera};
 
 /// Largest calibration file read (KITTI's are ~1 KiB).
@@ -355,21 +355,37 @@ pub async fn import_kitti(
             seq,
             format!(
                 "no frame with image_2/NNNNNN.png, image_3/NNNNNN.png and velodyne/NNNNNN.bin{}{}",
-                if options.frames.is_some() { " in the selected range" } else { "" },
-                if skipped.is_empty() { String::new() } else { format!(" ({})", skipped.join("; ")) }
+                if options.frames.is_some() {
+                    " in the selected range"
+                } else {
+                    ""
+                },
+                if skipped.is_empty() {
+                    String::new()
+                } else {
+                    format!(" ({})", skipped.join("; "))
+                }
             ),
         ));
     };
     if last >= times.len() {
         return Err(invalid(
             &times_path,
-            format!("{} stamps, but frame {last:06} needs line {}", times.len(), last + 1),
+            format!(
+                "{} stamps, but frame {last:06} needs line {}",
+                times.len(),
+                last + 1
+            ),
         ));
     }
     if last >= gt.len() {
         return Err(invalid(
             &poses_path,
-            format!("{} poses, but frame {last:06} needs line {}", gt.len(), last + 1),
+            format!(
+                "{} poses, but frame {last:06} needs line {}",
+                gt.len(),
+                last + 1
+            ),
         ));
     }
 
@@ -382,10 +398,20 @@ pub async fn import_kitti(
         let path = dir.join(&first);
         let size = image::image_dimensions(&path).map_err(|e| invalid(&path, e.to_string()))?;
         if size.0 < scale || size.1 < scale {
-            return Err(invalid(&path, format!("smaller than the downscale {scale}")));
+            return Err(invalid(
+                &path,
+                format!("smaller than the downscale {scale}"),
+            ));
         }
         full_sizes.push(size);
-        cameras.push(camera_from(name, p, size, scale, &t_cam0_lidar, &calib_path)?);
+        cameras.push(camera_from(
+            name,
+            p,
+            size,
+            scale,
+            &t_cam0_lidar,
+            &calib_path,
+        )?);
     }
     let rig = Rig {
         base_frame: "cam0".into(),
@@ -393,7 +419,8 @@ pub async fn import_kitti(
         t_base_lidar: t_cam0_lidar,
         cameras,
     };
-    rig.validate().map_err(|e| invalid(&calib_path, e.to_string()))?;
+    rig.validate()
+        .map_err(|e| invalid(&calib_path, e.to_string()))?;
 
     let w = DatasetWriter::create(out, overwrite)?;
     let world = z_up();
@@ -409,8 +436,11 @@ pub async fn import_kitti(
         let name = format!("{f:06}");
         let scan_path = velo.join(format!("{name}.bin"));
         let bytes = read_bounded(&scan_path, MAX_SWEEP_BYTES)?;
-        let scan =
-            kitti::read_bin_bytes(&bytes, &scan_path.display().to_string(), kitti::KITTI_STRIDE)?;
+        let scan = kitti::read_bin_bytes(
+            &bytes,
+            &scan_path.display().to_string(),
+            kitti::KITTI_STRIDE,
+        )?;
         let positions = scan.cloud.positions.clone();
         lidar_points += positions.len();
         let (ring, column, rings, columns) = normals::angular_grid(&positions);
@@ -459,7 +489,15 @@ pub async fn import_kitti(
                 p.sky.iter().filter(|&&s| s != 0).count();
             let t_world_cam = t_world_lidar * cam.t_lidar_cam;
             cam_poses[i].push(t_world_cam);
-            nsframes.push(products::write_camera(&w, cam, k, time, &t_world_cam, rgb, &p)?);
+            nsframes.push(products::write_camera(
+                &w,
+                cam,
+                k,
+                time,
+                &t_world_cam,
+                rgb,
+                &p,
+            )?);
         }
     }
     progress(total, total);
