@@ -397,7 +397,11 @@ pub fn parse_times(text: &str, name: &str) -> Result<Vec<f64>, KittiTextError> {
             Ok(_) => return Err(line_err(name, n, format!("stamp '{tok}' is not finite"))),
             Err(_) => {
                 let shown: String = tok.chars().take(40).collect();
-                return Err(line_err(name, n, format!("stamp '{shown}' is not a number")));
+                return Err(line_err(
+                    name,
+                    n,
+                    format!("stamp '{shown}' is not a number"),
+                ));
             }
         };
         if let Some(&prev) = stamps.last() {
@@ -444,18 +448,26 @@ Tr: 4.276802385584e-04 -9.999672484946e-01 -8.084491683471e-03 -1.198459927713e-
         assert_eq!(c.entries.len(), 4);
         assert_eq!(c.get("Tr").unwrap().line, 4);
         let p2 = c.projection("P2").unwrap();
-        assert_eq!((p2.fx, p2.fy, p2.cx, p2.cy), (718.856, 718.856, 607.1928, 185.2157));
+        assert_eq!(
+            (p2.fx, p2.fy, p2.cx, p2.cy),
+            (718.856, 718.856, 607.1928, 185.2157)
+        );
         // The projection P2 maps a point exactly as K (X + t) does.
         let x = DVec3::new(1.5, -0.7, 12.0);
         let p = c.exactly("P2", 12, "P").unwrap();
-        let u = (p[0] * x.x + p[1] * x.y + p[2] * x.z + p[3]) / (p[8] * x.x + p[9] * x.y + p[10] * x.z + p[11]);
-        let v = (p[4] * x.x + p[5] * x.y + p[6] * x.z + p[7]) / (p[8] * x.x + p[9] * x.y + p[10] * x.z + p[11]);
+        let u = (p[0] * x.x + p[1] * x.y + p[2] * x.z + p[3])
+            / (p[8] * x.x + p[9] * x.y + p[10] * x.z + p[11]);
+        let v = (p[4] * x.x + p[5] * x.y + p[6] * x.z + p[7])
+            / (p[8] * x.x + p[9] * x.y + p[10] * x.z + p[11]);
         let xc = x + p2.t;
         assert!((p2.fx * xc.x / xc.z + p2.cx - u).abs() < 1e-9, "{u}");
         assert!((p2.fy * xc.y / xc.z + p2.cy - v).abs() < 1e-9, "{v}");
         // cam2 sits ~6 cm left of cam0, cam3 ~47 cm right: the stereo baseline is ~0.54 m.
         let p3 = c.projection("P3").unwrap();
-        assert!((p2.t.x - 0.0599).abs() < 1e-3 && (p3.t.x + 0.4733).abs() < 1e-3, "{p2:?} {p3:?}");
+        assert!(
+            (p2.t.x - 0.0599).abs() < 1e-3 && (p3.t.x + 0.4733).abs() < 1e-3,
+            "{p2:?} {p3:?}"
+        );
         assert_eq!(c.projection("P0").unwrap().t, DVec3::ZERO);
         // Tr: velodyne → cam0; the lidar's forward axis (+x) is the camera's +z.
         let tr = c.rigid("Tr").unwrap();
@@ -473,50 +485,108 @@ Tr: 4.276802385584e-04 -9.999672484946e-01 -8.084491683471e-03 -1.198459927713e-
         assert!((t.trans.z + 0.2717806).abs() < 1e-12);
         // Text is refused only where numbers are asked for, naming the line.
         let e = c.numbers("calib_time").unwrap_err().to_string();
-        assert_eq!(e, "calib_velo_to_cam.txt, line 1: calib_time: value 1 '15-Mar-2012' is not a number");
+        assert_eq!(
+            e,
+            "calib_velo_to_cam.txt, line 1: calib_time: value 1 '15-Mar-2012' is not a number"
+        );
     }
 
     #[test]
     fn corrupt_calib_is_refused_with_file_and_line() {
         let err = |text: &str| parse_calib(text, "calib.txt").unwrap_err().to_string();
-        assert_eq!(err(""), "calib.txt: no 'KEY: values' lines (empty calibration file)");
-        assert_eq!(err("P0: 1 2\n\nP1 1 2 3\n"), "calib.txt, line 3: expected 'KEY: values' (no colon)");
+        assert_eq!(
+            err(""),
+            "calib.txt: no 'KEY: values' lines (empty calibration file)"
+        );
+        assert_eq!(
+            err("P0: 1 2\n\nP1 1 2 3\n"),
+            "calib.txt, line 3: expected 'KEY: values' (no colon)"
+        );
         assert!(err("P 0: 1\n").starts_with("calib.txt, line 1: 'P 0' is not a calibration key"));
-        assert_eq!(err("P0: 1\nTr: 2\nP0: 3\n"), "calib.txt, line 3: P0 repeats the entry of line 1");
+        assert_eq!(
+            err("P0: 1\nTr: 2\nP0: 3\n"),
+            "calib.txt, line 3: P0 repeats the entry of line 1"
+        );
 
         let with = |line: &str| {
             let text = CALIB_00.replace(CALIB_00.lines().nth(1).unwrap(), line);
             parse_calib(&text, "seq/calib.txt").unwrap()
         };
-        let e = with("P2: 1 0 2 0 0 1 2 0 0 0 1").projection("P2").unwrap_err().to_string();
-        assert_eq!(e, "seq/calib.txt, line 2: P2 has 11 numbers; a 3 × 4 projection matrix needs 12");
-        let e = with("P2: 700 0 600 0 0 700 NaN 0 0 0 1 0").projection("P2").unwrap_err().to_string();
+        let e = with("P2: 1 0 2 0 0 1 2 0 0 0 1")
+            .projection("P2")
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            e,
+            "seq/calib.txt, line 2: P2 has 11 numbers; a 3 × 4 projection matrix needs 12"
+        );
+        let e = with("P2: 700 0 600 0 0 700 NaN 0 0 0 1 0")
+            .projection("P2")
+            .unwrap_err()
+            .to_string();
         assert_eq!(e, "seq/calib.txt, line 2: P2: value 7 'NaN' is not finite");
-        let e = with("P2: 700 0 600 0 0 700 x 0 0 0 1 0").projection("P2").unwrap_err().to_string();
+        let e = with("P2: 700 0 600 0 0 700 x 0 0 0 1 0")
+            .projection("P2")
+            .unwrap_err()
+            .to_string();
         assert_eq!(e, "seq/calib.txt, line 2: P2: value 7 'x' is not a number");
-        let e = with("P2: 700 0 600 0 0 -700 180 0 0 0 1 0").projection("P2").unwrap_err().to_string();
-        assert!(e.starts_with("seq/calib.txt, line 2: P2: focal lengths must be positive"), "{e}");
-        let e = with("P2: 700 3 600 0 0 700 180 0 0 0 1 0").projection("P2").unwrap_err().to_string();
-        assert!(e.starts_with("seq/calib.txt, line 2: P2: not a rectified pinhole"), "{e}");
-        let e = with("P2: 700 0 600 0 0 700 180 0 0.1 0 1 0").projection("P2").unwrap_err().to_string();
-        assert!(e.starts_with("seq/calib.txt, line 2: P2: not a rectified pinhole"), "{e}");
+        let e = with("P2: 700 0 600 0 0 -700 180 0 0 0 1 0")
+            .projection("P2")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("seq/calib.txt, line 2: P2: focal lengths must be positive"),
+            "{e}"
+        );
+        let e = with("P2: 700 3 600 0 0 700 180 0 0 0 1 0")
+            .projection("P2")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("seq/calib.txt, line 2: P2: not a rectified pinhole"),
+            "{e}"
+        );
+        let e = with("P2: 700 0 600 0 0 700 180 0 0.1 0 1 0")
+            .projection("P2")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("seq/calib.txt, line 2: P2: not a rectified pinhole"),
+            "{e}"
+        );
         // A scaled rotation block in Tr is not a rigid transform.
         let c = parse_calib("Tr: 2 0 0 0 0 2 0 0 0 0 2 0\n", "calib.txt").unwrap();
         let e = c.rigid("Tr").unwrap_err().to_string();
-        assert!(e.starts_with("calib.txt, line 1: Tr: rotation block is not orthonormal"), "{e}");
+        assert!(
+            e.starts_with("calib.txt, line 1: Tr: rotation block is not orthonormal"),
+            "{e}"
+        );
         let e = c.projection("P2").unwrap_err().to_string();
         assert_eq!(e, "calib.txt: no 'P2:' line (keys present: Tr)");
     }
 
     #[test]
     fn times_parse_and_corrupt_times_name_the_line() {
-        let t = parse_times("\u{feff}0.000000e+00\n1.037359e-01\n\n2.073381e-01\n", "times.txt").unwrap();
+        let t = parse_times(
+            "\u{feff}0.000000e+00\n1.037359e-01\n\n2.073381e-01\n",
+            "times.txt",
+        )
+        .unwrap();
         assert_eq!(t, vec![0.0, 0.1037359, 0.2073381]);
         let err = |text: &str| parse_times(text, "00/times.txt").unwrap_err().to_string();
         assert_eq!(err(""), "00/times.txt: no stamps (empty times file)");
-        assert_eq!(err("0\n0.1 0.2\n"), "00/times.txt, line 2: expected one number (seconds) per line");
-        assert_eq!(err("0\n0.1\nabc\n"), "00/times.txt, line 3: stamp 'abc' is not a number");
-        assert_eq!(err("0\ninf\n"), "00/times.txt, line 2: stamp 'inf' is not finite");
+        assert_eq!(
+            err("0\n0.1 0.2\n"),
+            "00/times.txt, line 2: expected one number (seconds) per line"
+        );
+        assert_eq!(
+            err("0\n0.1\nabc\n"),
+            "00/times.txt, line 3: stamp 'abc' is not a number"
+        );
+        assert_eq!(
+            err("0\ninf\n"),
+            "00/times.txt, line 2: stamp 'inf' is not finite"
+        );
         assert_eq!(
             err("0\n0.2\n\n0.1\n"),
             "00/times.txt, line 4: stamp 0.1 is not after 0.2 (line 2); stamps must increase"
