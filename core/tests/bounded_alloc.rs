@@ -113,6 +113,11 @@ fn a_ply_claiming_2_31_vertices_in_1_kb_is_refused_within_the_bound() {
     std::fs::write(&path, &bytes).unwrap();
     let r = peak_growth(|| pointcloud::read_ply(&path));
     assert_refused("2^31 vertices, from disk", r, "claims.ply");
+    // 2^22 vertices (100 MB of positions, which the allocator would grant): refused by the bytes left,
+    // not by a failed reservation. Without that bound this case grows the heap past the bound (checked).
+    let bytes = ply(1 << 22, &["float x", "float y", "float z"], 1024);
+    let r = peak_growth(|| pointcloud::read_ply_bytes(&bytes, "claims.ply"));
+    assert_refused("2^22 vertices", r, "claims.ply");
 }
 
 /// A PLY whose count the bytes do allow, with one-byte coordinates and sixty unused one-byte
