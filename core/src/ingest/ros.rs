@@ -874,11 +874,12 @@ impl<'a> Image<'a> {
                 "step {step} is less than width {w} x {bpp} bytes ({enc})"
             )));
         }
-        let need = if w * h == 0 {
-            0
-        } else {
-            (h - 1) * step + w * bpp
-        };
+        // An image without pixels is refused here: with a width of 0 the row loop below would still
+        // run `height` times (up to 2^32; the fuzzer found one).
+        if w * h == 0 {
+            return Err(err(format!("{w}x{h} {enc}: the image has no pixels")));
+        }
+        let need = (h - 1) * step + w * bpp;
         if need > self.data.len() as u64 {
             return Err(err(format!(
                 "data has {} bytes, but {w}x{h} {enc} with step {step} needs {need}",
