@@ -46,7 +46,14 @@ const PATH_RUN = 'rays=256&model=tiny&downscale=2&export=0&uncertainty=0&view-ev
 /** Held-out PSNR of the browser run within this of the native WGSL run (dB). */
 const PSNR_TOLERANCE_DB = 0.008;
 /** Exported points within this fraction of the native count (accumulation ≥ 0.98 is a sharp cut). */
-const POINTS_TOLERANCE = 0.05;
+// Re-measured after the metric uncertainty (held-out lidar returns; 2026-12-04, session 19): the export
+// count spreads more than before: native 188, 193, 196 over three runs of one seed; against the 188 fixture
+// Chromium 209 and 214 (+11, +14 %), Firefox 216 and 187 (+15, −0.5 %), held-out PSNR within 0.0003 dB every
+// time. 20 % holds that spread and still fails the 10-steps-short run (29 %).
+// The σ quartiles are all 0.00 decades on both sides at this budget: the 150-step field's held-out lidar
+// residual is ~1.2 m, so the calibrated σ of every point sits at the 1 m prior (correctly); the check then
+// guards only that the browser reports the same (finite, prior) σ.
+const POINTS_TOLERANCE = 0.2;
 /** log10-std quartiles (25, 50, 75 %) within this many decades of the native run's. */
 const QUANTILE_TOLERANCE = 0.15;
 
