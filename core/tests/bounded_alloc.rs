@@ -171,7 +171,7 @@ fn npz(data: &[u8], declared: u32) -> Vec<u8> {
 /// An `.npy` header of `shape` float64s (no data).
 fn npy_header(shape: &str) -> Vec<u8> {
     let mut h = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}");
-    while (10 + h.len() + 1) % 64 != 0 {
+    while !(10 + h.len() + 1).is_multiple_of(64) {
         h.push(' ');
     }
     h.push('\n');

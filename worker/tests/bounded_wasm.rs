@@ -126,7 +126,7 @@ fn zip(data: &[u8], method: u16, declared: u32) -> Vec<u8> {
 fn an_npz_claiming_10_gb_is_refused_within_the_bound() {
     // A .npy header of 1.25e9 float64s (10 GB) and no data.
     let mut h = "{'descr': '<f8', 'fortran_order': False, 'shape': (1250000000,), }".to_string();
-    while (10 + h.len() + 1) % 64 != 0 {
+    while !(10 + h.len() + 1).is_multiple_of(64) {
         h.push(' ');
     }
     h.push('\n');
