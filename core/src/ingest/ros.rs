@@ -656,7 +656,10 @@ impl<'a> PointCloud2<'a> {
         let mut raw_times = ft.map(|_| Vec::with_capacity(n));
         let mut rings = fr.map(|_| Vec::with_capacity(n));
         let (mut skipped_nonfinite, mut skipped_zero) = (0, 0);
-        for row in 0..h as usize {
+        // With no columns there is nothing to read: the rows are not walked (a width of 0 passes the size
+        // check with any height, up to 2^32 empty rows; the cdr fuzz target found it).
+        let rows = if w == 0 { 0 } else { h as usize };
+        for row in 0..rows {
             let row_base = row * self.row_step as usize;
             for col in 0..w as usize {
                 let base = row_base + col * step as usize;

@@ -848,3 +848,25 @@ fn an_image_without_pixels_is_refused_at_once() {
         assert!(t.elapsed().as_secs_f64() < 1.0);
     }
 }
+
+#[test]
+fn a_cloud_without_columns_is_empty_at_once() {
+    // Width 0 with height 2^32 − 1 passed the size check and walked 4 billion empty rows (found by the
+    // cdr fuzz target's CI smoke).
+    let f = |n, o, t| PointField::new(n, o, t);
+    let (data, mut msg) = cloud(
+        vec![f("x", 0, 7), f("y", 4, 7), f("z", 8, 7)],
+        12,
+        3,
+        1,
+        36,
+        false,
+        |_| vec![1.0, 2.0, 3.0],
+    );
+    msg.data = &data;
+    msg.width = 0;
+    msg.height = u32::MAX;
+    let t = std::time::Instant::now();
+    assert_eq!(msg.to_scan().unwrap().positions.len(), 0);
+    assert!(t.elapsed().as_secs_f64() < 1.0, "{:?}", t.elapsed());
+}
