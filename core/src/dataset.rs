@@ -568,3 +568,28 @@ impl Transforms {
             .map_err(|e| fmt_err(path, format!("not a valid transforms.json: {e}")))
     }
 }
+
+/// Colour downscaled by `f`: each output pixel the mean of an f×f block (what training reads at `--downscale`).
+pub fn resize_rgb(px: Vec<[u8; 3]>, w: u32, h: u32, f: u32) -> Vec<[u8; 3]> {
+    if f <= 1 {
+        return px;
+    }
+    let (nw, nh) = (w / f, h / f);
+    let mut out = Vec::with_capacity((nw * nh) as usize);
+    for y in 0..nh {
+        for x in 0..nw {
+            let mut acc = [0u32; 3];
+            for dy in 0..f {
+                for dx in 0..f {
+                    let p = px[((y * f + dy) * w + x * f + dx) as usize];
+                    for c in 0..3 {
+                        acc[c] += p[c] as u32;
+                    }
+                }
+            }
+            let n = f * f;
+            out.push(acc.map(|v| ((v + n / 2) / n) as u8));
+        }
+    }
+    out
+}

@@ -223,27 +223,9 @@ fn load_image(path: &Path, full: (u32, u32), f: u32) -> Result<Vec<[u8; 3]>, Kit
             ),
         ));
     }
-    if f <= 1 {
-        return Ok(img.pixels().map(|p| p.0).collect());
-    }
-    let (w, h) = (full.0 / f, full.1 / f);
-    let mut out = Vec::with_capacity((w * h) as usize);
-    for y in 0..h {
-        for x in 0..w {
-            let mut sum = [0u32; 3];
-            for dy in 0..f {
-                for dx in 0..f {
-                    let p = img.get_pixel(x * f + dx, y * f + dy).0;
-                    for c in 0..3 {
-                        sum[c] += p[c] as u32;
-                    }
-                }
-            }
-            let n = f * f;
-            out.push(sum.map(|s| ((s + n / 2) / n) as u8));
-        }
-    }
-    Ok(out)
+    // Training's own f × f block mean, so the stored image is what `--downscale f` would read.
+    let pixels = img.pixels().map(|p| p.0).collect();
+    Ok(crate::dataset::resize_rgb(pixels, full.0, full.1, f))
 }
 
 /// Imports the KITTI odometry sequence folder `seq` (`…/sequences/NN`) into a dataset at `out`.
