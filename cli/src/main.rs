@@ -14,6 +14,7 @@ use silvr_core::train::export::ExportDepth;
 
 mod backend;
 mod ingest;
+mod odometry;
 mod poses;
 mod reconstruct;
 mod renders;
@@ -209,6 +210,11 @@ enum Command {
         /// Write the JSON report here (printed to stdout otherwise).
         #[arg(long)]
         out: Option<PathBuf>,
+        /// The alignment before scoring: `sim3` (rotation, translation and scale: visual SfM, whose
+        /// scale is arbitrary) or `se3` (no scale: lidar odometry, which claims metres). Default: sim3
+        /// for transforms.json and COLMAP, se3 for two trajectory files.
+        #[arg(long)]
+        align: Option<String>,
     },
     /// Measure the kernels: points/s of lidar projection (WGSL vs CPU reference) and of deskewing.
     Bench {
@@ -369,6 +375,9 @@ enum Command {
     /// the merge (the more certain submap keeps each overlap voxel) and, with ground truth, its evaluation
     /// filtered and unfiltered. Rerun on the same --out to finish a killed job (finished submaps are kept).
     Reconstruct(reconstruct::ReconstructCmd),
+    /// A trajectory from the lidar alone (KISS-ICP-class odometry) for a recording without a SLAM
+    /// trajectory: a KITTI sequence folder or a ROS 2 bag → TUM, scored where ground truth exists.
+    Odometry(odometry::OdometryCmd),
     /// One submap of a reconstruction (train → uncertainty → filtered export) from its
     /// OUT/reconstruct.json: what each Slurm array task runs (the index from SLURM_ARRAY_TASK_ID), and what
     /// any other scheduler can run per index before `silvr reconstruct` merges.
@@ -486,6 +495,7 @@ fn main() {
         Command::Ingest(c) => ingest::run(c, open_gpu),
         Command::BenchIngest(c) => ingest::bench(c, open_gpu),
         Command::Import(c) => ingest::import(c, open_gpu),
+        Command::Odometry(c) => odometry::run(c),
         Command::Export(c) => ingest::export(c),
         Command::Poses {
             dataset,
@@ -515,7 +525,12 @@ fn main() {
             drift,
             seed,
         } => poses::perturb(&dataset, &out, noise, noise_deg, drift, seed),
-        Command::EvalPoses { est, gt, out } => eval_poses(&est, &gt, out.as_deref()),
+        Command::EvalPoses {
+            est,
+            gt,
+            out,
+            align,
+        } => eval_poses(&est, &gt, out.as_deref(), align.as_deref()),
         Command::Pairs {
             dataset,
             out,
@@ -764,8 +779,29 @@ fn pairs(dataset: &Path, out: &Path, opts: silvr_core::sfm::pairs::PairOptions) 
 
 /// `silvr eval-poses`: ATE / rotation / RPE of a transforms.json, or of a COLMAP model folder, against
 /// an exact transforms.json.
-fn eval_poses(est: &Path, gt: &Path, out: Option<&Path>) -> Result<()> {
+fn eval_poses(est: &Path, gt: &Path, out: Option<&Path>, align: Option<&str>) -> Result<()> {
     use silvr_core::eval::poses;
+    let trajectory_file = |p: &Path| p.is_file() && p.extension().is_none_or(|e| e != "json");
+    if trajectory_file(est) && trajectory_file(gt) {
+        // Two trajectories (TUM, KITTI, EuRoC, Spires): matched by time.
+        let read = silvr_core::ingest::poses::read_trajectory;
+        let (e, g) = poses::match_by_time(&read(est)?, &read(gt)?, 5e-3);
+        let errors = match align.unwrap_or("se3") {
+            "se3" => poses::pose_errors_se3(&e, &g)?,
+            "sim3" => poses::pose_errors(&e, &g)?,
+            o => anyhow::bail!("--align {o}: expected se3 or sim3"),
+        };
+        eprintln!("{}", pose_line(&errors));
+        let json = serde_json::to_string_pretty(&errors)?;
+        match out {
+            Some(p) => write_atomic(p, json.as_bytes())?,
+            None => println!("{json}"),
+        }
+        return Ok(());
+    }
+    if align.is_some_and(|a| a != "sim3") {
+        anyhow::bail!("--align se3 applies to two trajectory files (TUM, KITTI); camera sets are aligned by Sim(3)");
+    }
     let colmap = est.is_dir()
         && !est.join("transforms.json").exists()
         && (est.join("images.txt").exists() || est.join("images.bin").exists());
@@ -786,7 +822,7 @@ fn eval_poses(est: &Path, gt: &Path, out: Option<&Path>) -> Result<()> {
 /// One line of pose errors for the terminal.
 fn pose_line(e: &silvr_core::eval::poses::PoseErrors) -> String {
     format!(
-        "{}/{} frames registered ({} in the Sim(3) fit, scale {:.4}): ATE {:.3} m RMSE, {:.3} m median, {:.3} m max; rotation {:.2}° RMSE; RPE {:.3} m, {:.2}° per step",
+        "{}/{} frames registered ({} in the alignment, scale {:.4}): ATE {:.3} m RMSE, {:.3} m median, {:.3} m max; rotation {:.2}° RMSE; RPE {:.3} m, {:.2}° per step",
         e.registered,
         e.frames,
         e.inliers,

@@ -148,6 +148,47 @@ impl Se3 {
     pub fn is_finite(&self) -> bool {
         quat_is_finite(self.rot) && self.trans.is_finite()
     }
+
+    /// The SE(3) exponential of a twist `(rho, phi)` (translation part, rotation vector): the rigid
+    /// motion of constant velocity over unit time. Used to scale a motion (constant-velocity prediction,
+    /// deskewing at a fraction of a sweep) and as the update of a Gauss-Newton step.
+    pub fn exp(rho: DVec3, phi: DVec3) -> Se3 {
+        let theta = phi.length();
+        let rot = DQuat::from_scaled_axis(phi);
+        // V = I + (1 - cos θ)/θ² [φ]x + (θ - sin θ)/θ³ [φ]x²; Taylor terms below 1e-6 rad.
+        let (a, b) = if theta < 1e-6 {
+            (0.5, 1.0 / 6.0)
+        } else {
+            let t2 = theta * theta;
+            (
+                (1.0 - theta.cos()) / t2,
+                (theta - theta.sin()) / (t2 * theta),
+            )
+        };
+        let c = phi.cross(rho);
+        let trans = rho + a * c + b * phi.cross(c);
+        Se3::new(rot, trans)
+    }
+
+    /// The twist `(rho, phi)` whose exponential is `self` ([`Se3::exp`]'s inverse; rotations up to π).
+    pub fn log(&self) -> (DVec3, DVec3) {
+        let q = if self.rot.w < 0.0 {
+            -self.rot
+        } else {
+            self.rot
+        };
+        let phi = q.to_scaled_axis();
+        let theta = phi.length();
+        // V⁻¹ = I - ½[φ]x + (1/θ²)(1 - θ sin θ / (2(1 - cos θ)))[φ]x²
+        let d = if theta < 1e-6 {
+            1.0 / 12.0
+        } else {
+            (1.0 - theta * theta.sin() / (2.0 * (1.0 - theta.cos()))) / (theta * theta)
+        };
+        let c = phi.cross(self.trans);
+        let rho = self.trans - 0.5 * c + d * phi.cross(c);
+        (rho, phi)
+    }
 }
 
 impl Mul for Se3 {
@@ -452,6 +493,27 @@ impl Trajectory {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn se3_exp_and_log_are_inverse_and_exp_is_constant_velocity() {
+        let cases = [
+            (DVec3::new(0.3, -1.2, 2.0), DVec3::new(0.1, 0.2, -0.3)),
+            (DVec3::new(1.0, 0.0, 0.0), DVec3::ZERO),
+            (DVec3::new(-0.5, 0.4, 0.1), DVec3::new(0.0, 0.0, 3.0)),
+            (DVec3::new(0.0, 0.1, 0.0), DVec3::new(1e-9, 0.0, 0.0)),
+        ];
+        for (rho, phi) in cases {
+            let t = Se3::exp(rho, phi);
+            let (r2, p2) = t.log();
+            assert!(
+                r2.distance(rho) < 1e-9 && p2.distance(phi) < 1e-9,
+                "{rho} {phi}: {r2} {p2}"
+            );
+            // Two half steps of the same twist make the whole motion (a screw, not a lerp).
+            let half = Se3::exp(0.5 * rho, 0.5 * phi);
+            let twice = half * half;
+            assert!(twice.distance_to(&t) < 1e-9 && twice.angle_to(&t) < 1e-9);
+        }
+    }
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_xoshiro::Xoshiro256PlusPlus;

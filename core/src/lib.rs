@@ -23,6 +23,7 @@ pub mod gpu;
 pub mod ingest;
 pub mod job;
 pub mod lidar;
+pub mod odometry;
 pub mod pointcloud;
 pub mod render;
 pub mod rig;

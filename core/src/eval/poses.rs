@@ -74,6 +74,21 @@ pub fn pose_errors_of_sequences(
     gt: &[Se3],
     starts: &[usize],
 ) -> Result<PoseErrors, PoseEvalError> {
+    aligned_errors(est, gt, starts, true)
+}
+
+/// As [`pose_errors`] for a trajectory that claims metric scale (lidar odometry): aligned by a rigid
+/// SE(3), so a scale error counts against it (the KITTI / evo convention for lidar odometry).
+pub fn pose_errors_se3(est: &[Se3], gt: &[Se3]) -> Result<PoseErrors, PoseEvalError> {
+    aligned_errors(est, gt, &[], false)
+}
+
+fn aligned_errors(
+    est: &[Se3],
+    gt: &[Se3],
+    starts: &[usize],
+    with_scale: bool,
+) -> Result<PoseErrors, PoseEvalError> {
     if est.len() != gt.len() || est.len() < 3 {
         return Err(PoseEvalError::Mismatch {
             what: "trajectories".into(),
@@ -96,7 +111,11 @@ pub fn pose_errors_of_sequences(
     // walked in a line measured 5° of "rotation error" that way), so each frame also contributes the
     // tips of its axes, 1 m out in the exact frame and 1 m / scale in the estimate's (the scale from the
     // centres, which a line does determine).
-    let scale0 = Sim3::umeyama(&src, &dst, true)?.scale.max(1e-12);
+    let scale0 = if with_scale {
+        Sim3::umeyama(&src, &dst, true)?.scale.max(1e-12)
+    } else {
+        1.0
+    };
     let fit = |keep: &[bool]| -> Result<Sim3, GeometryError> {
         let (mut s, mut d) = (Vec::new(), Vec::new());
         for (k, (e, g)) in est.iter().zip(gt).enumerate() {
@@ -110,7 +129,7 @@ pub fn pose_errors_of_sequences(
                 d.push(g.trans + g.rot * axis);
             }
         }
-        Sim3::umeyama(&s, &d, true)
+        Sim3::umeyama(&s, &d, with_scale)
     };
     let mut keep: Vec<bool> = vec![true; src.len()];
     let mut sim = fit(&keep)?;
@@ -160,6 +179,33 @@ pub fn pose_errors_of_sequences(
         rpe_trans_rmse_m: rms(&rpe_t),
         rpe_rot_rmse_deg: rms(&rpe_r),
     })
+}
+
+/// Pairs each pose of `est` with the exact pose at its time: the sample within `tolerance` seconds, else
+/// the exact trajectory interpolated between its neighbours; poses outside its span are left out.
+pub fn match_by_time(
+    est: &crate::geometry::Trajectory,
+    exact: &crate::geometry::Trajectory,
+    tolerance: f64,
+) -> (Vec<Se3>, Vec<Se3>) {
+    let (mut e, mut g) = (Vec::new(), Vec::new());
+    let ts = exact.stamps();
+    for (&s, p) in est.stamps().iter().zip(est.poses()) {
+        let k = ts.partition_point(|&x| x < s);
+        let near = [k.saturating_sub(1), k]
+            .into_iter()
+            .filter(|&i| i < ts.len())
+            .min_by(|&a, &b| (ts[a] - s).abs().total_cmp(&(ts[b] - s).abs()));
+        let pose = match near.filter(|&i| (ts[i] - s).abs() <= tolerance) {
+            Some(i) => Some(exact.poses()[i]),
+            None => exact.at(s),
+        };
+        if let Some(pose) = pose {
+            e.push(*p);
+            g.push(pose);
+        }
+    }
+    (e, g)
 }
 
 /// Errors of the camera poses of one `transforms.json` against another's, frames matched by image path:

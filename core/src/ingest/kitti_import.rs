@@ -545,3 +545,107 @@ pub async fn import_kitti(
     let path = w.commit()?;
     Ok(KittiSummary { path, ..summary })
 }
+
+/// The lidar of a KITTI odometry sequence, for lidar odometry (`silvr odometry SEQ`): the sweeps in frame
+/// order with their times, and the ground truth in the lidar's frame where the sequence has one.
+pub struct KittiLidar {
+    velo: PathBuf,
+    /// KITTI frame numbers with a sweep, ascending.
+    pub frames: Vec<usize>,
+    /// Time of each of `frames` (s, times.txt).
+    pub times: Vec<f64>,
+    /// `T_lidar0_lidar` of each of `frames` (`Tr⁻¹ · T_world_cam0 · Tr`, relative to the first), and the
+    /// file it came from, when ground truth was found beside the sequence.
+    pub ground_truth: Option<(PathBuf, Vec<Se3>)>,
+}
+
+impl KittiLidar {
+    /// Reads the sequence folder's `times.txt`, `calib.txt` (for the ground truth) and lists `velodyne/`.
+    pub fn open(seq: &Path) -> Result<Self, KittiImportError> {
+        let velo = seq.join("velodyne");
+        let mut frames: Vec<usize> = std::fs::read_dir(&velo)
+            .map_err(|e| {
+                invalid(
+                    &velo,
+                    format!("{e} (a KITTI odometry sequence has velodyne/NNNNNN.bin)"),
+                )
+            })?
+            .flatten()
+            .filter_map(|e| {
+                let name = e.file_name();
+                let s = name.to_str()?;
+                let stem = s.strip_suffix(".bin")?;
+                (stem.len() == 6).then(|| stem.parse().ok()).flatten()
+            })
+            .collect();
+        frames.sort_unstable();
+        if frames.is_empty() {
+            return Err(invalid(&velo, "no NNNNNN.bin sweep"));
+        }
+        let times_path = seq.join("times.txt");
+        let all_times = kitti::parse_times(
+            &read_text(&times_path, MAX_TEXT_BYTES)?,
+            &times_path.display().to_string(),
+        )?;
+        let last = *frames.last().unwrap_or(&0);
+        if last >= all_times.len() {
+            return Err(invalid(
+                &times_path,
+                format!(
+                    "{} stamps, but frame {last:06} needs line {}",
+                    all_times.len(),
+                    last + 1
+                ),
+            ));
+        }
+        let times = frames.iter().map(|&f| all_times[f]).collect();
+        let calib_path = seq.join("calib.txt");
+        let ground_truth = match pose_candidates(seq).into_iter().find(|p| p.is_file()) {
+            Some(path) if calib_path.is_file() => {
+                let calib = kitti::parse_calib(
+                    &read_text(&calib_path, MAX_CALIB_BYTES)?,
+                    &calib_path.display().to_string(),
+                )?;
+                let tr = calib.rigid("Tr")?;
+                let gt = poses::parse_kitti(
+                    &read_text(&path, MAX_TEXT_BYTES)?,
+                    &path.display().to_string(),
+                    KittiTimes::Period(1.0),
+                )?;
+                let gt = gt.poses();
+                if last >= gt.len() {
+                    return Err(invalid(
+                        &path,
+                        format!(
+                            "{} poses, but frame {last:06} needs line {}",
+                            gt.len(),
+                            last + 1
+                        ),
+                    ));
+                }
+                let w_l = |f: usize| gt[f] * tr;
+                let first = w_l(frames[0]).inverse();
+                Some((path, frames.iter().map(|&f| first * w_l(f)).collect()))
+            }
+            _ => None,
+        };
+        Ok(Self {
+            velo,
+            frames,
+            times,
+            ground_truth,
+        })
+    }
+
+    /// Sweep `k` (of `frames`): motion-compensated already, so no point times.
+    pub fn sweep(&self, k: usize) -> Result<crate::odometry::Sweep, KittiImportError> {
+        let path = self.velo.join(format!("{:06}.bin", self.frames[k]));
+        let bytes = read_bounded(&path, MAX_SWEEP_BYTES)?;
+        let scan = kitti::read_bin_bytes(&bytes, &path.display().to_string(), kitti::KITTI_STRIDE)?;
+        Ok(crate::odometry::Sweep {
+            stamp: self.times[k],
+            points: scan.cloud.positions,
+            times: None,
+        })
+    }
+}

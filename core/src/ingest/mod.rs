@@ -19,7 +19,10 @@
 //!   (with format detection), and writers for KITTI and Spires.
 //! - [`kitti`]: KITTI velodyne `.bin` scans and nuScenes `.pcd.bin` sweeps (headerless f32 records), and
 //!   KITTI's `calib.txt` / `calib_*.txt` and `times.txt`.
-//! - [`kitti_import`] (native only): a KITTI odometry sequence → the dataset layout.
+//! - [`kitti_import`] (native only): a KITTI odometry sequence → the dataset layout, and its lidar for
+//!   lidar odometry.
+//! - [`odometry_input`] (native only): the sweeps of a bag or a KITTI sequence in time order, for lidar
+//!   odometry (`silvr odometry`), with the sequence's ground truth where it has one.
 //!
 //! Every reader treats its input as untrusted: errors, never panics, and no allocation larger than the
 //! input justifies.
@@ -38,6 +41,8 @@ pub mod kitti_import;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod mcap;
 pub mod npz;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod odometry_input;
 pub mod pcd;
 pub mod poses;
 pub mod ros;

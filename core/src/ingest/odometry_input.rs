@@ -1,0 +1,212 @@
+//! The lidar sweeps of a recording in time order, for lidar odometry (`silvr odometry INPUT`): a ROS 2
+//! bag's PointCloud2 messages on one topic (with per-point times when the driver publishes them), or a
+//! KITTI odometry sequence's `velodyne/` (motion-compensated, with the sequence's ground truth in the
+//! lidar frame when it has one). Bag sweeps that cannot be used (a bad cloud, no points, a time not after
+//! the previous one) are counted by reason, not fatal.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use super::kitti_import::{KittiImportError, KittiLidar};
+use super::mcap::{summarize, BagError, BagReader};
+use super::ros::RosMessage;
+use crate::geometry::Se3;
+use crate::odometry::{DeskewMode, Sweep};
+
+#[derive(Debug, thiserror::Error)]
+pub enum OdometryInputError {
+    #[error(transparent)]
+    Bag(#[from] BagError),
+    #[error(transparent)]
+    Kitti(#[from] KittiImportError),
+    #[error("{file}: {reason}")]
+    Invalid { file: String, reason: String },
+}
+
+/// A recording opened for odometry.
+pub struct OdometryInput {
+    /// `kitti` or `bag`.
+    pub kind: &'static str,
+    /// The lidar topic read (bags).
+    pub topic: Option<String>,
+    /// How its sweeps should be deskewed unless the user says otherwise: KITTI's are compensated.
+    pub default_deskew: DeskewMode,
+    /// Ground truth `T_lidar0_lidar` per sweep, by sweep index, and where it came from (KITTI).
+    pub ground_truth: Option<(PathBuf, Vec<Se3>)>,
+    pub sweeps: Box<dyn Iterator<Item = Result<Sweep, OdometryInputError>>>,
+    /// Bag sweeps left out, by reason (filled as `sweeps` is consumed).
+    pub dropped: std::rc::Rc<std::cell::RefCell<BTreeMap<String, u64>>>,
+}
+
+/// Opens `input`: a KITTI odometry sequence folder (it has `velodyne/`) or a ROS 2 bag (`.mcap`), whose
+/// lidar topic is `topic` or, when `None`, its only PointCloud2 topic.
+pub fn open(input: &Path, topic: Option<&str>) -> Result<OdometryInput, OdometryInputError> {
+    let name = input.display().to_string();
+    let dropped = std::rc::Rc::new(std::cell::RefCell::new(BTreeMap::new()));
+    if input.is_dir() {
+        if !input.join("velodyne").is_dir() {
+            return Err(OdometryInputError::Invalid {
+                file: name,
+                reason: "a folder without velodyne/: give a KITTI odometry sequence folder \
+                         (sequences/NN) or a ROS 2 bag (.mcap)"
+                    .into(),
+            });
+        }
+        let seq = KittiLidar::open(input)?;
+        let ground_truth = seq.ground_truth.clone();
+        let n = seq.frames.len();
+        let sweeps = (0..n).map(move |k| seq.sweep(k).map_err(Into::into));
+        return Ok(OdometryInput {
+            kind: "kitti",
+            topic: None,
+            default_deskew: DeskewMode::Off,
+            ground_truth,
+            sweeps: Box::new(sweeps),
+            dropped,
+        });
+    }
+    let topic = match topic {
+        Some(t) => t.to_string(),
+        None => {
+            let topics = lidar_topics(input)?;
+            match topics.as_slice() {
+                [(t, _)] => t.clone(),
+                [] => {
+                    return Err(OdometryInputError::Invalid {
+                        file: name,
+                        reason: "no sensor_msgs/msg/PointCloud2 topic".into(),
+                    })
+                }
+                many => {
+                    return Err(OdometryInputError::Invalid {
+                        file: name,
+                        reason: format!(
+                            "several PointCloud2 topics; choose one with --lidar-topic ({})",
+                            many.iter()
+                                .map(|(t, n)| format!("{t}: {n} messages"))
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        ),
+                    })
+                }
+            }
+        }
+    };
+    let mut bag = BagSweeps::open(input, &topic)?;
+    let shared = dropped.clone();
+    let sweeps = std::iter::from_fn(move || {
+        let next = bag.next();
+        *shared.borrow_mut() = bag.dropped.clone();
+        next.map(|r| r.map_err(Into::into))
+    });
+    Ok(OdometryInput {
+        kind: "bag",
+        topic: Some(topic),
+        default_deskew: DeskewMode::Auto,
+        ground_truth: None,
+        sweeps: Box::new(sweeps),
+        dropped,
+    })
+}
+
+const POINTCLOUD2: &str = "sensor_msgs/msg/PointCloud2";
+
+/// The bag's PointCloud2 topics with their message counts.
+pub fn lidar_topics(bag: &Path) -> Result<Vec<(String, u64)>, BagError> {
+    let s = summarize(bag)?;
+    Ok(s.topics
+        .into_iter()
+        .filter(|(_, t)| t.schema_name == POINTCLOUD2)
+        .map(|(name, t)| (name, t.messages))
+        .collect())
+}
+
+/// Streams the sweeps of `topic`; unusable ones land in [`BagSweeps::dropped`].
+pub struct BagSweeps {
+    reader: BagReader,
+    topic: String,
+    last_stamp: f64,
+    /// Sweeps left out, by reason.
+    pub dropped: BTreeMap<String, u64>,
+}
+
+impl BagSweeps {
+    pub fn open(bag: &Path, topic: &str) -> Result<Self, BagError> {
+        Ok(Self {
+            reader: BagReader::open(bag)?,
+            topic: topic.to_string(),
+            last_stamp: f64::NEG_INFINITY,
+            dropped: BTreeMap::new(),
+        })
+    }
+
+    fn drop(&mut self, why: String) {
+        *self.dropped.entry(why).or_default() += 1;
+    }
+}
+
+impl Iterator for BagSweeps {
+    type Item = Result<Sweep, BagError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            let msg = match self.reader.next()? {
+                Ok(m) => m,
+                Err(e) => return Some(Err(e)),
+            };
+            if msg.topic() != self.topic {
+                continue;
+            }
+            let scan = match msg.decode() {
+                Ok(Ok(RosMessage::PointCloud2(pc))) => pc.to_scan(),
+                Ok(Ok(_)) | Ok(Err(_)) => {
+                    self.drop(format!("not a PointCloud2 ({})", msg.schema_name()));
+                    continue;
+                }
+                Err(e) => Err(e),
+            };
+            let scan = match scan {
+                Ok(s) => s,
+                Err(e) => {
+                    self.drop(format!("bad PointCloud2 ({e})"));
+                    continue;
+                }
+            };
+            if scan.positions.is_empty() {
+                self.drop("no points".into());
+                continue;
+            }
+            let stamp = scan.stamp.sec as f64 + scan.stamp.nanosec as f64 * 1e-9;
+            let times = scan
+                .times
+                .map(|t| t.into_iter().map(|dt| stamp + dt).collect::<Vec<f64>>());
+            // The time the odometry stamps the sweep with: its mid-point with point times, else the stamp.
+            let t_ref = match &times {
+                Some(t) => {
+                    let (lo, hi) = t
+                        .iter()
+                        .filter(|x| x.is_finite())
+                        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+                            (a.min(x), b.max(x))
+                        });
+                    if lo.is_finite() {
+                        0.5 * (lo + hi)
+                    } else {
+                        stamp
+                    }
+                }
+                None => stamp,
+            };
+            if t_ref.partial_cmp(&self.last_stamp) != Some(std::cmp::Ordering::Greater) {
+                self.drop("not after the previous sweep".into());
+                continue;
+            }
+            self.last_stamp = t_ref;
+            return Some(Ok(Sweep {
+                stamp,
+                points: scan.positions,
+                times,
+            }));
+        }
+    }
+}
