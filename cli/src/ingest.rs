@@ -31,6 +31,11 @@ pub struct IngestCmd {
     /// Override ingest.max_keyframes.
     #[arg(long)]
     pub max_keyframes: Option<usize>,
+    /// Where the trajectory comes from: `lidar` runs lidar odometry over the lidar topic (for a bag with
+    /// no SLAM trajectory; one without a trajectory gets it anyway, with a notice). Default: the rig
+    /// file's trajectory_topic or trajectory_file.
+    #[arg(long)]
+    pub trajectory: Option<String>,
     /// Only list the bag's topics, types, counts and time span (no rig file needed).
     #[arg(long)]
     pub info: bool,
@@ -54,6 +59,13 @@ pub fn run(c: IngestCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Result<()> {
     }
     if let Some(m) = c.max_keyframes {
         cfg.ingest.max_keyframes = Some(m);
+    }
+    match c.trajectory.as_deref() {
+        None => {}
+        Some("lidar") => cfg.ingest.trajectory_from_lidar = true,
+        Some(o) => anyhow::bail!(
+            "--trajectory {o}: expected lidar (a topic or file is set in the rig file's ingest block)"
+        ),
     }
     let gpu = open_gpu()?;
     let cfg_dir = cfg_path.parent().unwrap_or(Path::new(".")).to_path_buf();
@@ -102,6 +114,10 @@ pub fn ingest(
         },
     ))
     .with_context(|| format!("ingesting {} into {}", bag.display(), out.display()))?;
+    for n in &summary.notices {
+        eprintln!("[ingest] notice: {n}");
+    }
+    eprintln!("[ingest] trajectory: {}", summary.trajectory);
     eprintln!(
         "[ingest] wrote {} ({} keyframes, {} images, {} lidar points) in {:.1} s",
         summary.path.display(),

@@ -94,6 +94,11 @@ enum Command {
         /// Keep points in space the GT never observed.
         #[arg(long)]
         keep_unknown: bool,
+        /// The poses the reconstruction was made on (transforms.json or its folder), when they are not
+        /// the ground truth's frame (refined or lidar-odometry poses): the reconstruction is scored after
+        /// the Sim(3) that aligns them to the exact poses in GT's transforms.json.
+        #[arg(long)]
+        poses: Option<PathBuf>,
     },
     /// Split a dataset into submaps by recursive normalised cuts of its keyframe graph (distance: camera
     /// positions' nearest neighbours, as SiLVR's public code; covis: the structure two keyframes both
@@ -571,12 +576,14 @@ fn main() {
             out,
             error_ply,
             keep_unknown,
+            poses,
         } => eval_cmd(
             &reconstruction,
             &gt,
             out.as_deref(),
             error_ply.as_deref(),
             keep_unknown,
+            poses.as_deref(),
         ),
         Command::Train {
             dataset,
@@ -1030,9 +1037,22 @@ fn eval_cmd(
     out: Option<&Path>,
     error_ply: Option<&Path>,
     keep_unknown: bool,
+    poses: Option<&Path>,
 ) -> Result<()> {
+    let alignment = match poses {
+        Some(p) => {
+            let e = silvr_core::eval::poses::compare_transforms(
+                &transforms_file(p),
+                &transforms_file(gt),
+            )?;
+            eprintln!("poses: {}", pose_line(&e));
+            Some(e.alignment.to_mat4())
+        }
+        None => None,
+    };
     let options = GeometryOptions {
         filter_unknown: !keep_unknown,
+        reconstruction_to_gt: alignment,
         ..GeometryOptions::default()
     };
     let ev = eval::evaluate_files_full(rec, gt, &options)?;

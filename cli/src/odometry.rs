@@ -17,7 +17,8 @@ pub struct OdometryCmd {
     /// A KITTI odometry sequence folder (velodyne/, times.txt; ground truth beside it is scored) or a
     /// ROS 2 bag (.mcap).
     input: PathBuf,
-    /// The trajectory to write (TUM: t tx ty tz qx qy qz qw, T_world_lidar).
+    /// The trajectory to write (TUM: t tx ty tz qx qy qz qw, T_world_lidar); its report (per sweep:
+    /// time, ICP, how well the scene constrains the motion, warnings) goes beside it as OUT.json.
     #[arg(long)]
     out: PathBuf,
     /// The bag's lidar topic (default: its only PointCloud2 topic).
@@ -97,6 +98,9 @@ pub fn run(c: OdometryCmd) -> Result<()> {
         &config,
         sweeps.map(|s| s.map_err(|e| odometry::OdometryError::Config(e.to_string()))),
         |i, r| {
+            for w in &r.warnings {
+                eprintln!("warning: sweep {i} (t = {:.6} s): {w}", r.stamp);
+            }
             if i % 50 == 0 {
                 eprintln!(
                     "sweep {i}: {} points registered, σ {:.3} m, {} map points",
@@ -182,6 +186,12 @@ pub fn run(c: OdometryCmd) -> Result<()> {
         "ms_per_sweep_mean": 1e3 * per_sweep.iter().sum::<f64>() / per_sweep.len() as f64,
         "threads": std::thread::available_parallelism().map_or(1, |n| n.get()),
         "pose_errors": errors,
+        "warnings": run.sweeps.iter().map(|r| r.warnings.len()).sum::<usize>(),
+        "degenerate_sweeps": run
+            .sweeps
+            .iter()
+            .filter(|r| r.constraint.is_some_and(|c| c < odometry::MIN_CONSTRAINT))
+            .count(),
         "sweep_reports": run.sweeps,
     });
     eprintln!(
@@ -190,6 +200,8 @@ pub fn run(c: OdometryCmd) -> Result<()> {
         c.out.display()
     );
     let text = serde_json::to_string_pretty(&report)?;
+    // The trajectory's sidecar: its report beside it (OUT.json), whatever else is asked for.
+    crate::write_atomic(&c.out.with_extension("json"), text.as_bytes())?;
     match &c.report {
         Some(p) => crate::write_atomic(p, text.as_bytes())?,
         None => println!("{text}"),

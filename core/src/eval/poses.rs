@@ -299,7 +299,15 @@ pub fn compare_named(
         let k = match exact.get(name.as_str()).or(same_file) {
             Some(&k) => k,
             None => {
-                let tail = format!("/{}", name.trim_start_matches("./"));
+                // The name as a suffix; else its part from the dataset layout's `images/` on (a
+                // `silvr poses` output of another copy of the same recording, e.g. one ingested again
+                // with another trajectory, names `../other/images/cam/NNNNN.png`).
+                let mut tail = format!("/{}", name.trim_start_matches("./"));
+                if !g.iter().any(|f| f.file_path.ends_with(&tail)) {
+                    if let Some(i) = name.rfind("images/") {
+                        tail = name[i..].to_string();
+                    }
+                }
                 let mut hits = g
                     .iter()
                     .enumerate()

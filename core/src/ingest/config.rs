@@ -154,6 +154,10 @@ pub struct IngestSection {
     /// Frame the trajectory poses (`base_link` unless Odometry says otherwise).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub trajectory_frame: Option<String>,
+    /// The trajectory from lidar odometry over `lidar_topic` ([`crate::odometry`]) instead of a topic or
+    /// file (`silvr ingest --trajectory lidar`). A bag with neither gets it anyway, with a notice.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub trajectory_from_lidar: bool,
     /// The rig's body frame in the TF tree.
     #[serde(default = "default_base_frame")]
     pub base_frame: String,
@@ -189,6 +193,7 @@ impl Default for IngestSection {
             trajectory_topic: default_trajectory_topic(),
             trajectory_file: None,
             trajectory_frame: None,
+            trajectory_from_lidar: false,
             base_frame: default_base_frame(),
             keyframe_distance: default_keyframe_distance(),
             keyframe_angle_deg: default_keyframe_angle(),

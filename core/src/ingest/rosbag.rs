@@ -82,6 +82,11 @@ pub struct IngestSummary {
     /// Beams and columns of the lidar range image, and where they came from.
     pub lidar_beams: usize,
     pub lidar_columns: usize,
+    /// Where the trajectory came from: a topic, a file, or `lidar odometry (topic)`.
+    pub trajectory: String,
+    /// What the user should know about choices made for them (e.g. odometry standing in for a missing
+    /// trajectory).
+    pub notices: Vec<String>,
 }
 
 /// One sweep as seen in pass 1.
@@ -418,7 +423,49 @@ pub async fn ingest_bag(
     rig.validate().map_err(|e| unusable(format!("rig: {e}")))?;
 
     // ---- trajectory: T_world_lidar ----------------------------------------------------------------
-    let (samples, traj_frame, traj_source) = if let Some(f) = &ing.trajectory_file {
+    let mut notices = Vec::new();
+    let missing = ing.trajectory_file.is_none() && ix.trajectory.len() < 2;
+    if missing && !ing.trajectory_from_lidar {
+        notices.push(format!(
+            "no trajectory in the bag ({} pose(s) on '{}'): using lidar odometry over '{}' \
+             (silvr ingest --trajectory lidar says so explicitly; a SLAM trajectory is better where you have one)",
+            ix.trajectory.len(),
+            ing.trajectory_topic.as_deref().unwrap_or(""),
+            ing.lidar_topic
+        ));
+    }
+    let (samples, traj_frame, traj_source) = if ing.trajectory_from_lidar || missing {
+        let mut sweeps = super::odometry_input::BagSweeps::open(bag, &ing.lidar_topic)?;
+        let config = crate::odometry::OdometryConfig::default();
+        let mut err = None;
+        let run = crate::odometry::run(
+            &config,
+            sweeps.by_ref().map_while(|s| match s {
+                Ok(s) => Some(Ok(s)),
+                Err(e) => {
+                    err = Some(e);
+                    None
+                }
+            }),
+            |i, _| {
+                progress(Progress {
+                    stage: "lidar odometry",
+                    done: i as u64 + 1,
+                    total: ix.sweeps.len() as u64,
+                })
+            },
+        )
+        .map_err(|e| unusable(format!("lidar odometry over '{}': {e}", ing.lidar_topic)))?;
+        if let Some(e) = err {
+            return Err(e.into());
+        }
+        let s: Vec<(f64, Se3)> = run.stamps.into_iter().zip(run.poses).collect();
+        (
+            s,
+            lidar_frame.clone(),
+            format!("lidar odometry ({})", ing.lidar_topic),
+        )
+    } else if let Some(f) = &ing.trajectory_file {
         let path = cfg_dir.join(f);
         // TUM, KITTI (+ times.txt), Spires slam-poses.csv or EuRoC, detected from the file.
         let t = super::poses::read_trajectory(&path).map_err(|e| IngestError::Unusable {
@@ -473,7 +520,20 @@ pub async fn ingest_bag(
     let (stamps, poses): (Vec<f64>, Vec<Se3>) = samples.into_iter().unzip();
     let trajectory =
         Trajectory::new(stamps, poses).map_err(|e| unusable(format!("trajectory: {e}")))?;
-    let max_pose_gap = cfg.sensor.max_time_diff_camera_and_pose.unwrap_or(0.05);
+    let mut max_pose_gap = cfg.sensor.max_time_diff_camera_and_pose.unwrap_or(0.05);
+    if traj_source.starts_with("lidar odometry") {
+        // One pose per sweep: an image between two sweeps is interpolated along the constant-velocity
+        // motion the odometry assumed anyway, so the gap allowed is half the sweep interval at least.
+        let mut d: Vec<f64> = trajectory
+            .stamps()
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .collect();
+        d.sort_by(f64::total_cmp);
+        if let Some(&mid) = d.get(d.len() / 2) {
+            max_pose_gap = max_pose_gap.max(0.6 * mid);
+        }
+    }
 
     // ---- lidar geometry ---------------------------------------------------------------------------
     let beams = ix.max_ring.map(|r| r as usize + 1).ok_or_else(|| {
@@ -721,6 +781,8 @@ pub async fn ingest_bag(
         dropped,
         lidar_beams: beams,
         lidar_columns: columns,
+        trajectory: traj_source.clone(),
+        notices,
     };
     let manifest = Manifest {
         layout_version: dataset::LAYOUT_VERSION,

@@ -31,6 +31,8 @@ pub struct IcpReport {
     pub iterations: usize,
     /// Correspondences in the last iteration.
     pub correspondences: usize,
+    /// The last step was below the convergence threshold.
+    pub converged: bool,
 }
 
 const CHUNK: usize = 1024;
@@ -123,10 +125,61 @@ pub fn register(
         );
         pose = step * pose;
         if dx.norm() < s.convergence {
+            report.converged = true;
             break;
         }
     }
     (pose, report)
+}
+
+/// How well the matched surfaces pin the translation: the eigenvalues of Σ n nᵀ over the correspondences
+/// within `max_correspondence`, n the normal of the matched map voxel's points (their smallest principal
+/// direction; voxels of fewer than 4 points are skipped), as `(smallest / largest, direction of the
+/// smallest)`. Near 0 the sweep slides freely along that direction (a corridor, a tunnel, an open field
+/// seen from one plane): point-to-point ICP then returns the motion model's guess there, not a measurement.
+pub fn translation_constraint(
+    points: &[DVec3],
+    pose: &Se3,
+    map: &VoxelHashMap,
+    max_correspondence: f64,
+) -> Option<(f64, DVec3)> {
+    use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+    let max2 = max_correspondence * max_correspondence;
+    let mut a = Matrix3::<f64>::zeros();
+    let mut n_used = 0;
+    // A thousand points spread over the sweep say as much as all of them, at a fraction of the cost.
+    let stride = points.len().div_ceil(1000).max(1);
+    for &p in points.iter().step_by(stride) {
+        let w_p = pose.transform_point(p);
+        let Some((q, d2)) = map.nearest(w_p) else {
+            continue;
+        };
+        let vox = map.voxel_points(q);
+        if d2 >= max2 || vox.len() < 4 {
+            continue;
+        }
+        let mean = vox.iter().copied().sum::<DVec3>() / vox.len() as f64;
+        let mut c = Matrix3::<f64>::zeros();
+        for v in vox {
+            let d = Vector3::new(v.x - mean.x, v.y - mean.y, v.z - mean.z);
+            c += d * d.transpose();
+        }
+        let e = SymmetricEigen::new(c);
+        let i = e.eigenvalues.imin();
+        let n = e.eigenvectors.column(i).into_owned();
+        a += n * n.transpose();
+        n_used += 1;
+    }
+    if n_used < 6 {
+        return None;
+    }
+    let e = SymmetricEigen::new(a);
+    let (lo, hi) = (e.eigenvalues.min(), e.eigenvalues.max());
+    if hi <= 0.0 {
+        return None;
+    }
+    let v = e.eigenvectors.column(e.eigenvalues.imin()).into_owned();
+    Some((lo.max(0.0) / hi, DVec3::new(v.x, v.y, v.z)))
 }
 
 #[cfg(test)]
@@ -184,5 +237,16 @@ mod tests {
         };
         let (stay, _) = register(&scan, &map, Se3::IDENTITY, &tight);
         assert_eq!(stay, Se3::IDENTITY);
+        // A corner pins every direction; a corridor (floor and two walls, no end) leaves its axis free.
+        let (ratio, _) = translation_constraint(&world, &Se3::IDENTITY, &map, 1.0).unwrap();
+        assert!(ratio > 0.2, "corner {ratio}");
+        let corridor: Vec<DVec3> = world.iter().filter(|p| p.x != 8.0).copied().collect();
+        let mut cmap = VoxelHashMap::new(0.5, 20);
+        cmap.add(&corridor);
+        let (ratio, axis) = translation_constraint(&corridor, &Se3::IDENTITY, &cmap, 1.0).unwrap();
+        assert!(
+            ratio < 0.01 && axis.x.abs() > 0.99,
+            "corridor {ratio} along {axis}"
+        );
     }
 }

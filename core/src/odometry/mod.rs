@@ -91,7 +91,7 @@ pub struct Sweep {
 }
 
 /// What odometry did with one sweep.
-#[derive(Clone, Copy, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize)]
 pub struct SweepReport {
     /// The time the pose is at (s).
     pub stamp: f64,
@@ -105,7 +105,22 @@ pub struct SweepReport {
     pub map_points: usize,
     /// Time this sweep took (s): deskew, down-sampling, registration and the map update (not reading it).
     pub seconds: f64,
+    /// ICP's last step was below the convergence threshold.
+    pub converged: bool,
+    /// How well the matched surfaces pin the translation, smallest / largest eigenvalue of Σ n nᵀ
+    /// ([`icp::translation_constraint`]; 0 in a corridor), and the least constrained direction (sensor
+    /// frame of the first sweep).
+    pub constraint: Option<f64>,
+    pub weak_direction: Option<[f64; 3]>,
+    /// What the user should know about this sweep's pose (too few points, no convergence, a jump beyond
+    /// the motion model, a degenerate scene).
+    pub warnings: Vec<String>,
 }
+
+/// Fewer registration points than this and the sweep is not registered (its pose is the prediction).
+pub const MIN_POINTS: usize = 50;
+/// Below this [`SweepReport::constraint`] the sweep is reported as degenerate.
+pub const MIN_CONSTRAINT: f64 = 0.02;
 
 #[derive(Debug, thiserror::Error)]
 pub enum OdometryError {
@@ -297,17 +312,61 @@ impl Odometry {
         let sigma = self.sigma();
         let settings = IcpSettings {
             max_correspondence: 3.0 * sigma,
-            kernel: sigma / 3.0,
+            kernel: (sigma / 3.0).powi(2),
             max_iterations: self.config.max_iterations,
             convergence: self.config.convergence,
         };
-        let (pose, rep) = icp::register(&source, &self.map, prediction, &settings);
+        let mut warnings = Vec::new();
+        let (pose, rep) = if source.len() < MIN_POINTS && !self.map.is_empty() {
+            warnings.push(format!(
+                "only {} points within {lo}-{hi} m after down-sampling (fewer than {MIN_POINTS}): not \
+                 registered, the pose is the constant-velocity prediction",
+                source.len()
+            ));
+            (prediction, icp::IcpReport::default())
+        } else {
+            icp::register(&source, &self.map, prediction, &settings)
+        };
+        if !rep.converged && rep.iterations > 0 {
+            warnings.push(format!(
+                "ICP did not converge in {} iterations ({} correspondences)",
+                rep.iterations, rep.correspondences
+            ));
+        }
+        let constraint = if self.map.is_empty() {
+            None
+        } else {
+            icp::translation_constraint(&source, &pose, &self.map, settings.max_correspondence)
+        };
+        if let Some((c, dir)) = constraint.filter(|(c, _)| *c < MIN_CONSTRAINT) {
+            warnings.push(format!(
+                "degenerate: the surfaces matched barely constrain motion along ({:.2}, {:.2}, {:.2}) \
+                 (constraint {c:.4} < {MIN_CONSTRAINT}; a corridor or open ground): the pose along it is \
+                 the motion model's",
+                dir.x, dir.y, dir.z
+            ));
+        }
 
         // Adaptive threshold: how far the result moved from the prediction, rotation counted as the
         // displacement it causes at the range's edge.
         let dev = prediction.inverse() * pose;
         let theta = dev.angle_to(&Se3::IDENTITY);
-        let model_error = dev.trans.length() + 2.0 * self.config.max_range * (0.5 * theta).sin();
+        // KISS-ICP takes the configured max range as the lever arm; the sweep's own reach is what a
+        // rotation error actually displaces (a 20 m street seen with a 100 m setting inflated σ fivefold).
+        let reach = {
+            let mut r: Vec<f64> = source.iter().map(|p| p.length()).collect();
+            r.sort_by(f64::total_cmp);
+            r.get(r.len() / 2).copied().unwrap_or(0.0)
+        };
+        let model_error = dev.trans.length() + 2.0 * reach * (0.5 * theta).sin();
+        if self.samples >= 5 && model_error > 3.0 * sigma {
+            warnings.push(format!(
+                "jump: {:.3} m and {:.2}° away from the constant-velocity prediction (beyond 3σ = {:.3} m)",
+                dev.trans.length(),
+                theta.to_degrees(),
+                3.0 * sigma
+            ));
+        }
         if model_error > self.config.min_motion {
             self.sse += model_error * model_error;
             self.samples += 1;
@@ -346,6 +405,10 @@ impl Odometry {
                 sigma,
                 map_points: self.map.len(),
                 seconds: clock.elapsed().as_secs_f64(),
+                converged: rep.converged,
+                constraint: constraint.map(|c| c.0),
+                weak_direction: constraint.map(|c| c.1.to_array()),
+                warnings,
             },
         ))
     }

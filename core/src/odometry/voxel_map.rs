@@ -75,6 +75,13 @@ impl VoxelHashMap {
         });
     }
 
+    /// The points of the voxel holding `p`.
+    pub fn voxel_points(&self, p: DVec3) -> &[DVec3] {
+        self.voxels
+            .get(&voxel_of(p, self.voxel_size))
+            .map_or(&[], Vec::as_slice)
+    }
+
     /// The map point nearest to `q` among the 27 voxels around it, with its squared distance; `None`
     /// when those voxels are empty.
     pub fn nearest(&self, q: DVec3) -> Option<(DVec3, f64)> {
