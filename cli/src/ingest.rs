@@ -373,7 +373,8 @@ pub struct ImportCmd {
     #[arg(long)]
     pub overwrite: bool,
     /// kitti: the trajectory to use instead of the ground truth beside the sequence (KITTI format:
-    /// T_world_cam0 of frame i on line i).
+    /// T_world_cam0 of frame i on line i), or `lidar` for lidar odometry over velodyne/ (what a sequence
+    /// without ground truth gets anyway, with a notice).
     #[arg(long)]
     pub poses: Option<PathBuf>,
     /// kitti: only frames FIRST..=LAST (KITTI frame numbers), e.g. `--frames 0:99`.
@@ -522,7 +523,8 @@ pub fn import(c: ImportCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Result<()
                 c.overwrite,
                 kitti::KittiOptions {
                     downscale: c.downscale,
-                    poses: c.poses.clone(),
+                    poses: c.poses.clone().filter(|p| p.as_os_str() != "lidar"),
+                    lidar_odometry: c.poses.as_ref().is_some_and(|p| p.as_os_str() == "lidar"),
                     frames: c.frames,
                     every: c.every,
                     ..Default::default()
@@ -543,6 +545,9 @@ pub fn import(c: ImportCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Result<()
             );
             for why in &s.skipped {
                 eprintln!("[import] skipped frame {why}");
+            }
+            for n in &s.notices {
+                eprintln!("[import] notice: {n}");
             }
             println!("{}", serde_json::to_string_pretty(&s)?);
             Ok(())

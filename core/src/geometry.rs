@@ -177,7 +177,13 @@ impl Se3 {
         } else {
             self.rot
         };
-        let phi = q.to_scaled_axis();
+        let v = DVec3::new(q.x, q.y, q.z);
+        // glam rounds rotations below ~1e-6 rad to none; first order is exact enough there.
+        let phi = if v.length() < 1e-6 {
+            2.0 * v / q.w
+        } else {
+            q.to_scaled_axis()
+        };
         let theta = phi.length();
         // V⁻¹ = I - ½[φ]x + (1/θ²)(1 - θ sin θ / (2(1 - cos θ)))[φ]x²
         let d = if theta < 1e-6 {

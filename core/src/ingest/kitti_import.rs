@@ -9,8 +9,8 @@
 //! Both colour cameras form the rig: intrinsics from `P2`/`P3`, and each camera's place from the fourth
 //! column of its `P` (`P = K · [I | t]`: the camera is at `−t` in cam0's frame, cam0's rotation); the lidar
 //! from `Tr`. Each frame with both images and a sweep is a keyframe; its cameras are posed as
-//! `T_world_cam0 · T_cam0_cam`. Without a trajectory nothing is invented: the import refuses and says what
-//! it looked for. KITTI's world is cam0 at frame 0 (y down, z forward); ours is the same origin turned
+//! `T_world_cam0 · T_cam0_cam`. Without a trajectory file or ground truth the poses come from lidar
+//! odometry over the sweeps (`crate::odometry`), and the summary says so. KITTI's world is cam0 at frame 0 (y down, z forward); ours is the same origin turned
 //! z-up (`x, y, z = z, −x, −y` of KITTI's), since the sky masks and top-down plots take +z as up.
 //!
 //! The odometry sweeps are motion-compensated already and carry no per-point time, so nothing is deskewed
@@ -76,6 +76,9 @@ pub struct KittiOptions {
     /// A trajectory file to use instead of the ground truth found beside the sequence: KITTI format,
     /// `T_world_cam0` of frame i on line i (what KITTI-format SLAM and odometry tools write).
     pub poses: Option<PathBuf>,
+    /// The trajectory from lidar odometry over `velodyne/` (`--poses lidar`) instead of a file; also what a
+    /// sequence without ground truth or `poses` gets, with a notice.
+    pub lidar_odometry: bool,
     /// Only KITTI frames `first..=last`.
     pub frames: Option<(usize, usize)>,
     /// Every n-th of the selected frames (1 = all).
@@ -88,6 +91,7 @@ impl Default for KittiOptions {
             downscale: 1,
             min_range: 0.5,
             poses: None,
+            lidar_odometry: false,
             frames: None,
             every: 1,
         }
@@ -115,6 +119,8 @@ pub struct KittiSummary {
     pub sky_pixels: BTreeMap<String, usize>,
     /// Frames left out, with why (an image or the sweep missing).
     pub skipped: Vec<String>,
+    /// Choices made for the user (lidar odometry standing in for missing ground truth).
+    pub notices: Vec<String>,
 }
 
 fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>, KittiImportError> {
@@ -275,40 +281,48 @@ pub async fn import_kitti(
         &times_path.display().to_string(),
     )?;
 
-    // The trajectory: given, or the ground truth beside the sequence; never invented.
-    let poses_path = match &options.poses {
-        Some(p) => p.clone(),
+    // The trajectory: given, the ground truth beside the sequence, or lidar odometry (asked for, or with
+    // a notice when there is neither).
+    let mut notices = Vec::new();
+    let tried = pose_candidates(seq);
+    let file = match &options.poses {
+        Some(p) => Some(p.clone()),
+        None if options.lidar_odometry => None,
+        None => tried.iter().find(|p| p.is_file()).cloned(),
+    };
+    let (poses_name, gt): (String, Vec<Se3>) = match file {
+        Some(poses_path) => {
+            let name = poses_path.display().to_string();
+            // Frame i's pose is line i: the stamps come from times.txt by index, so a period of 1 is a
+            // placeholder.
+            let gt = poses::parse_kitti(
+                &read_text(&poses_path, MAX_TEXT_BYTES)?,
+                &name,
+                KittiTimes::Period(1.0),
+            )?;
+            (name, gt.poses().to_vec())
+        }
         None => {
-            let tried = pose_candidates(seq);
-            match tried.iter().find(|p| p.is_file()) {
-                Some(p) => p.clone(),
-                None => {
-                    return Err(invalid(
-                        seq,
-                        format!(
-                            "no trajectory: KITTI publishes ground-truth poses for sequences 00-10 only, \
-                             and none was found ({}). Give one with --poses FILE (KITTI format: \
-                             T_world_cam0 of frame i on line i, e.g. from a lidar or visual odometry); \
-                             poses are not invented",
-                            tried
-                                .iter()
-                                .map(|p| p.display().to_string())
-                                .collect::<Vec<_>>()
-                                .join(", ")
-                        ),
-                    ))
-                }
+            if !options.lidar_odometry {
+                notices.push(format!(
+                    "no trajectory: KITTI publishes ground truth for sequences 00-10 only and none was found \
+                     ({}); using lidar odometry over velodyne/ (--poses lidar says so explicitly; --poses FILE \
+                     gives one, KITTI format: T_world_cam0 of frame i on line i)",
+                    tried
+                        .iter()
+                        .map(|p| p.display().to_string())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ));
             }
+            (
+                "lidar odometry (velodyne/)".to_string(),
+                lidar_trajectory(seq, &t_cam0_lidar, options.frames)?,
+            )
         }
     };
-    let poses_name = poses_path.display().to_string();
-    // Frame i's pose is line i: the stamps come from times.txt by index, so a period of 1 is a placeholder.
-    let gt = poses::parse_kitti(
-        &read_text(&poses_path, MAX_TEXT_BYTES)?,
-        &poses_name,
-        KittiTimes::Period(1.0),
-    )?;
-    let gt = gt.poses();
+    let poses_path = PathBuf::from(&poses_name);
+    let gt = gt.as_slice();
 
     // Frames: every image_2 frame with its image_3 frame and sweep, within the selection.
     let dirs = [seq.join("image_2"), seq.join("image_3")];
@@ -522,6 +536,7 @@ pub async fn import_kitti(
         depth_pixels,
         sky_pixels,
         skipped,
+        notices,
     };
     let manifest = serde_json::json!({
         "layout_version": dataset::LAYOUT_VERSION,
@@ -544,6 +559,46 @@ pub async fn import_kitti(
     w.write_json("manifest.json", &manifest)?;
     let path = w.commit()?;
     Ok(KittiSummary { path, ..summary })
+}
+
+/// `T_world_cam0` per KITTI frame number (identity where a frame has no sweep) from lidar odometry over the
+/// sequence's sweeps within `frames`: `Tr · T_lidar0_lidar · Tr⁻¹`, the world cam0 at the first sweep, as
+/// KITTI's ground truth is. The sweeps are motion-compensated: no deskew.
+fn lidar_trajectory(
+    seq: &Path,
+    t_cam0_lidar: &Se3,
+    frames: Option<(usize, usize)>,
+) -> Result<Vec<Se3>, KittiImportError> {
+    let mut lidar = KittiLidar::open(seq)?;
+    if let Some((a, b)) = frames {
+        let keep: Vec<usize> = (0..lidar.frames.len())
+            .filter(|&k| (a..=b).contains(&lidar.frames[k]))
+            .collect();
+        lidar.times = keep.iter().map(|&k| lidar.times[k]).collect();
+        lidar.frames = keep.iter().map(|&k| lidar.frames[k]).collect();
+    }
+    let config = crate::odometry::OdometryConfig {
+        deskew: crate::odometry::DeskewMode::Off,
+        ..Default::default()
+    };
+    let velo = seq.join("velodyne");
+    let run = crate::odometry::run(
+        &config,
+        (0..lidar.frames.len()).map(|k| {
+            lidar
+                .sweep(k)
+                .map_err(|e| crate::odometry::OdometryError::Config(e.to_string()))
+        }),
+        |_, _| {},
+    )
+    .map_err(|e| invalid(&velo, format!("lidar odometry: {e}")))?;
+    let last = lidar.frames.last().copied().unwrap_or(0);
+    let mut out = vec![Se3::IDENTITY; last + 1];
+    let tr_inv = t_cam0_lidar.inverse();
+    for (&f, p) in lidar.frames.iter().zip(&run.poses) {
+        out[f] = *t_cam0_lidar * *p * tr_inv;
+    }
+    Ok(out)
 }
 
 /// The lidar of a KITTI odometry sequence, for lidar odometry (`silvr odometry SEQ`): the sweeps in frame

@@ -17,8 +17,8 @@ use crate::geometry::Se3;
 pub struct IcpSettings {
     /// Correspondences farther than this (m) are not used (KISS-ICP: 3σ of the adaptive threshold).
     pub max_correspondence: f64,
-    /// Scale κ of the Geman-McClure kernel w(e) = κ² / (κ + e²)² (m²; KISS-ICP: σ / 3, squared units
-    /// as in its implementation).
+    /// Scale κ of the Geman-McClure kernel w(e) = κ² / (κ + e²)² (m², e² the squared residual; the
+    /// odometry passes σ, as KISS-ICP 1.x does).
     pub kernel: f64,
     pub max_iterations: usize,
     /// Stop when the Gauss-Newton step's norm (m and rad together) is below this.
