@@ -96,7 +96,7 @@ pub fn run(c: OdometryCmd) -> Result<()> {
     });
     let run = odometry::run(
         &config,
-        sweeps.map(|s| s.map_err(|e| odometry::OdometryError::Config(e.to_string()))),
+        sweeps.map(|s| s.map_err(|e| odometry::OdometryError::Input(e.to_string()))),
         |i, r| {
             for w in &r.warnings {
                 eprintln!("warning: sweep {i} (t = {:.6} s): {w}", r.stamp);

@@ -9,6 +9,19 @@ use silvr_core::dataset::read_tum;
 use silvr_core::synthetic::bag::EPOCH;
 use silvr_tests::build_silvr;
 
+/// `silvr eval-poses --est EST --gt GT`, which must succeed: its JSON.
+fn eval_poses(est: &Path, gt: &Path) -> serde_json::Value {
+    let o = Command::new(build_silvr())
+        .args(["eval-poses", "--est"])
+        .arg(est)
+        .arg("--gt")
+        .arg(gt)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
 fn odometry(input: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
     let o = Command::new(build_silvr())
         .arg("odometry")
@@ -107,15 +120,7 @@ fn a_bag_without_a_trajectory_gets_one_from_its_lidar() {
         "{err}"
     );
     // The camera poses it gives, against the exact ones (Sim(3)): measured 7 cm (ci world: 9 cm).
-    let o = Command::new(build_silvr())
-        .args(["eval-poses", "--est"])
-        .arg(&lidar_ds)
-        .arg("--gt")
-        .arg(&ds)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let e: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let e = eval_poses(&lidar_ds, &ds);
     assert!(e["ate_rmse_m"].as_f64().unwrap() < 0.2, "{e}");
 
     // The lidar trajectory as the SLAM prior of `silvr poses`, as any other: refined to millimetres
@@ -166,15 +171,7 @@ fn kitti_sequences_are_tracked_within_centimetres_and_scored_alike_by_eval_poses
         assert!(e["rpe_trans_rmse_m"].as_f64().unwrap() < 0.04, "{seq}: {e}");
         assert!(e["rpe_rot_rmse_deg"].as_f64().unwrap() < 0.3, "{seq}: {e}");
         // The exported ground truth scores the same trajectory to the same numbers.
-        let o = Command::new(build_silvr())
-            .args(["eval-poses", "--est"])
-            .arg(&out)
-            .arg("--gt")
-            .arg(&gt)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let e2: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let e2 = eval_poses(&out, &gt);
         assert!(
             (e2["ate_rmse_m"].as_f64().unwrap() - ate).abs() < 1e-6,
             "{e2} vs {e}"

@@ -587,7 +587,7 @@ fn lidar_trajectory(
         (0..lidar.frames.len()).map(|k| {
             lidar
                 .sweep(k)
-                .map_err(|e| crate::odometry::OdometryError::Config(e.to_string()))
+                .map_err(|e| crate::odometry::OdometryError::Input(e.to_string()))
         }),
         |_, _| {},
     )

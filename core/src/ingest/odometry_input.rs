@@ -35,14 +35,14 @@ pub struct OdometryInput {
     pub ground_truth: Option<(PathBuf, Vec<Se3>)>,
     pub sweeps: Box<dyn Iterator<Item = Result<Sweep, OdometryInputError>>>,
     /// Bag sweeps left out, by reason (filled as `sweeps` is consumed).
-    pub dropped: std::rc::Rc<std::cell::RefCell<BTreeMap<String, u64>>>,
+    pub dropped: Dropped,
 }
 
 /// Opens `input`: a KITTI odometry sequence folder (it has `velodyne/`) or a ROS 2 bag (`.mcap`), whose
 /// lidar topic is `topic` or, when `None`, its only PointCloud2 topic.
 pub fn open(input: &Path, topic: Option<&str>) -> Result<OdometryInput, OdometryInputError> {
     let name = input.display().to_string();
-    let dropped = std::rc::Rc::new(std::cell::RefCell::new(BTreeMap::new()));
+    let dropped = Dropped::default();
     if input.is_dir() {
         if !input.join("velodyne").is_dir() {
             return Err(OdometryInputError::Invalid {
@@ -92,19 +92,14 @@ pub fn open(input: &Path, topic: Option<&str>) -> Result<OdometryInput, Odometry
             }
         }
     };
-    let mut bag = BagSweeps::open(input, &topic)?;
-    let shared = dropped.clone();
-    let sweeps = std::iter::from_fn(move || {
-        let next = bag.next();
-        *shared.borrow_mut() = bag.dropped.clone();
-        next.map(|r| r.map_err(Into::into))
-    });
+    let bag = BagSweeps::open(input, &topic)?;
+    let dropped = bag.dropped.clone();
     Ok(OdometryInput {
         kind: "bag",
         topic: Some(topic),
         default_deskew: DeskewMode::Auto,
         ground_truth: None,
-        sweeps: Box::new(sweeps),
+        sweeps: Box::new(bag.map(|r| r.map_err(Into::into))),
         dropped,
     })
 }
@@ -126,9 +121,12 @@ pub struct BagSweeps {
     reader: BagReader,
     topic: String,
     last_stamp: f64,
-    /// Sweeps left out, by reason.
-    pub dropped: BTreeMap<String, u64>,
+    /// Sweeps left out, by reason; shared, so a caller that hands the iterator on can still read it.
+    pub dropped: Dropped,
 }
+
+/// Counts of sweeps left out, by reason.
+pub type Dropped = std::rc::Rc<std::cell::RefCell<BTreeMap<String, u64>>>;
 
 impl BagSweeps {
     pub fn open(bag: &Path, topic: &str) -> Result<Self, BagError> {
@@ -136,12 +134,12 @@ impl BagSweeps {
             reader: BagReader::open(bag)?,
             topic: topic.to_string(),
             last_stamp: f64::NEG_INFINITY,
-            dropped: BTreeMap::new(),
+            dropped: Dropped::default(),
         })
     }
 
     fn drop(&mut self, why: String) {
-        *self.dropped.entry(why).or_default() += 1;
+        *self.dropped.borrow_mut().entry(why).or_default() += 1;
     }
 }
 
@@ -180,33 +178,18 @@ impl Iterator for BagSweeps {
             let times = scan
                 .times
                 .map(|t| t.into_iter().map(|dt| stamp + dt).collect::<Vec<f64>>());
-            // The time the odometry stamps the sweep with: its mid-point with point times, else the stamp.
-            let t_ref = match &times {
-                Some(t) => {
-                    let (lo, hi) = t
-                        .iter()
-                        .filter(|x| x.is_finite())
-                        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
-                            (a.min(x), b.max(x))
-                        });
-                    if lo.is_finite() {
-                        0.5 * (lo + hi)
-                    } else {
-                        stamp
-                    }
-                }
-                None => stamp,
+            let sweep = Sweep {
+                stamp,
+                points: scan.positions,
+                times,
             };
+            let t_ref = sweep.reference_time();
             if t_ref.partial_cmp(&self.last_stamp) != Some(std::cmp::Ordering::Greater) {
                 self.drop("not after the previous sweep".into());
                 continue;
             }
             self.last_stamp = t_ref;
-            return Some(Ok(Sweep {
-                stamp,
-                points: scan.positions,
-                times,
-            }));
+            return Some(Ok(sweep));
         }
     }
 }

@@ -90,6 +90,27 @@ pub struct Sweep {
     pub times: Option<Vec<f64>>,
 }
 
+impl Sweep {
+    /// The time its pose is at: the middle of its finite point times (KISS-ICP deskews to mid-sweep), else
+    /// its stamp.
+    pub fn reference_time(&self) -> f64 {
+        let Some(times) = &self.times else {
+            return self.stamp;
+        };
+        let (lo, hi) = times
+            .iter()
+            .filter(|x| x.is_finite())
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+                (a.min(x), b.max(x))
+            });
+        if lo.is_finite() {
+            0.5 * (lo + hi)
+        } else {
+            self.stamp
+        }
+    }
+}
+
 /// What odometry did with one sweep.
 #[derive(Clone, Debug, Serialize)]
 pub struct SweepReport {
@@ -132,6 +153,9 @@ pub enum OdometryError {
     },
     #[error("invalid odometry settings: {0}")]
     Config(String),
+    /// A sweep could not be read (the source's own message, naming its file).
+    #[error("{0}")]
+    Input(String),
 }
 
 /// Lidar odometry state: feed sweeps in time order with [`Odometry::register`].
@@ -238,24 +262,7 @@ impl Odometry {
                 )));
             }
         }
-        // Reference time: the middle of the point times (KISS-ICP deskews to mid-sweep), else the stamp.
-        let finite_times = sweep
-            .times
-            .as_ref()
-            .map(|t| t.iter().copied().filter(|x| x.is_finite()));
-        let t_ref = match finite_times {
-            Some(it) => {
-                let (lo, hi) = it.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
-                    (a.min(x), b.max(x))
-                });
-                if lo.is_finite() {
-                    0.5 * (lo + hi)
-                } else {
-                    sweep.stamp
-                }
-            }
-            None => sweep.stamp,
-        };
+        let t_ref = sweep.reference_time();
         if let Some(&last) = self.stamps.last() {
             if t_ref <= last {
                 return Err(bad(format!(
