@@ -92,10 +92,11 @@ if [ ! -x web/node_modules/.bin/wasm-opt ] || [ web/package-lock.json -nt web/no
   npm ci --prefix web --no-audit --no-fund --loglevel=error
 fi
 if [ "$purpose" = test ]; then
-  # numpy + scipy for scripts/crosscheck_eval.py, in a virtual environment of their own: Debian's Python
+  # numpy + scipy for scripts/crosscheck_eval.py and rosbags + mcap for core/tests/rosbags.rs, in a virtual
+  # environment of their own: Debian's Python
   # refuses `pip install` outside one (PEP 668). scripts/test.sh runs the cross-check with its python.
   venv="${SILVR_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/silvr-venv}"
-  if ! "$venv/bin/python" -c 'import numpy, scipy' >/dev/null 2>&1; then
+  if ! "$venv/bin/python" -c 'import numpy, scipy, rosbags, mcap' >/dev/null 2>&1; then
     if [ -e "$venv" ] && [ ! -f "$venv/pyvenv.cfg" ]; then
       echo "$venv exists and is not a virtual environment: move it away or set SILVR_VENV" >&2; exit 1
     fi

@@ -64,6 +64,13 @@ if [ "$(id -u)" = 0 ] && [ "${SILVR_NO_SLURM:-0}" != 1 ] &&
 	export SLURM_CONF SILVR_REQUIRE_SLURM=1
 fi
 
+# The Python peers (SciPy for the evaluator, rosbags for ROS 1 / .db3 bags) live in the virtual environment
+# scripts/setup.sh made (Debian's own Python refuses `pip install`, PEP 668); the Rust tests that call them
+# find it through SILVR_PYTHON and must not skip.
+venv="${SILVR_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/silvr-venv}"
+[ -x "$venv/bin/python" ] || { echo "no Python environment at $venv: run scripts/setup.sh" >&2; exit 1; }
+export SILVR_PYTHON="$venv/bin/python" SILVR_REQUIRE_PEERS=1
+
 echo "== native tests (cargo test --workspace)"
 # One build of every target first; the end-to-end tests then run its target/debug/silvr
 # (SILVR_TESTS_PREBUILT) instead of `cargo build -p silvr`, which resolves features for one package and
@@ -72,9 +79,6 @@ cargo build --workspace --all-targets
 SILVR_TESTS_PREBUILT=1 cargo test --workspace --no-fail-fast 2>&1 | tee "$logs/cargo-test.log"
 
 echo "== evaluator cross-check against SciPy cKDTree (and scikit-image SSIM)"
-# In the virtual environment scripts/setup.sh made (Debian's own Python refuses `pip install`, PEP 668).
-venv="${SILVR_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/silvr-venv}"
-[ -x "$venv/bin/python" ] || { echo "no Python environment at $venv: run scripts/setup.sh" >&2; exit 1; }
 "$venv/bin/python" scripts/crosscheck_eval.py
 
 # The browser tests compile silvr-core for wasm32 (through silvr-web and silvr-worker): that is also the

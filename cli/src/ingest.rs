@@ -1,17 +1,18 @@
-//! `silvr ingest`: a ROS 2 bag (+ rig file) → the dataset layout; `--info` lists what a bag holds.
+//! `silvr ingest`: a ROS 1 or ROS 2 bag (+ rig file) → the dataset layout; `--info` lists what a bag holds.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
 use silvr_core::gpu::Gpu;
+use silvr_core::ingest::bag;
 use silvr_core::ingest::config::RigConfig;
-use silvr_core::ingest::mcap;
 use silvr_core::ingest::rosbag::{self, IngestSummary};
 
 #[derive(clap::Args)]
 pub struct IngestCmd {
-    /// The bag (.mcap).
+    /// The bag: an MCAP file, a ROS 1 `.bag` (format 2.0), a rosbag2 folder (metadata.yaml + .db3 or
+    /// .mcap) or a `.db3` file; recognised from the content.
     pub bag: PathBuf,
     /// Rig file: the Oxford Spires sensor.yaml schema plus an optional `ingest:` block
     /// (topics, keyframe rules); see `silvr synth --mcap` for a complete example.
@@ -168,7 +169,7 @@ fn print_summary(s: &IngestSummary) {
 }
 
 fn info(bag: &Path, json: bool) -> Result<()> {
-    let s = mcap::summarize(bag)?;
+    let s = bag::summarize(bag)?;
     if json {
         let topics: serde_json::Map<String, serde_json::Value> = s
             .topics
@@ -189,6 +190,8 @@ fn info(bag: &Path, json: bool) -> Result<()> {
             .collect();
         let v = serde_json::json!({
             "bag": bag.display().to_string(),
+            "format": s.format.map(|f| f.name()),
+            "notes": s.notes,
             "messages": s.messages,
             "duration_s": s.duration(),
             "topics": topics,
@@ -200,11 +203,15 @@ fn info(bag: &Path, json: bool) -> Result<()> {
         return Ok(());
     }
     println!(
-        "{}: {} messages over {:.3} s",
+        "{} ({}): {} messages over {:.3} s",
         bag.display(),
+        s.format.map_or("?", |f| f.name()),
         s.messages,
         s.duration()
     );
+    for n in &s.notes {
+        println!("note: {n}");
+    }
     println!(
         "{:<60} {:<36} {:>9} {:>9}",
         "topic", "type", "messages", "decoded"
@@ -274,7 +281,7 @@ pub fn bench(c: BenchIngestCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Resul
         }
     };
     let cfg = RigConfig::read(&cfg_path)?;
-    let mb = std::fs::metadata(&bag)?.len() as f64 / 1e6;
+    let mb = bag::bag_bytes(&bag)? as f64 / 1e6;
     let reps = c.reps.max(1);
 
     // 1. Read + decode everything.
@@ -283,7 +290,7 @@ pub fn bench(c: BenchIngestCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Resul
     for _ in 0..reps {
         let t = Instant::now();
         (messages, points, pixels) = (0, 0, 0);
-        for msg in mcap::BagReader::open(&bag)? {
+        for msg in bag::BagReader::open(&bag)? {
             let msg = msg?;
             messages += 1;
             match msg.decode() {

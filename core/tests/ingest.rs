@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use glam::{DQuat, DVec3};
 use silvr_core::camera::Distortion;
 use silvr_core::geometry::Se3;
-use silvr_core::ingest::mcap::{summarize, BagError, BagReader, Skip};
+use silvr_core::ingest::bag::{summarize, BagError, BagReader, Skip};
 use silvr_core::ingest::pcd::{lzf_compress, read_pcd, read_pcd_bytes, PcdError};
 use silvr_core::ingest::ros::{
     CameraInfo, CompressedImage, Header, Image, Odometry, Path as RosPath, PointCloud2, PointField,
@@ -627,7 +627,7 @@ fn corrupt_chunks_and_non_mcap_are_errors() {
     );
     let e = read_all(&path).unwrap_err();
     assert!(
-        e.to_string().contains("text.mcap") && e.to_string().contains("bad magic"),
+        e.to_string().contains("text.mcap") && e.to_string().contains("not a bag"),
         "{e}"
     );
     let e = read_all(&dir.path().join("missing.mcap")).unwrap_err();

@@ -3,7 +3,7 @@
 //! errors, never a panic (the reader's own panics are caught and reported) or a runaway allocation.
 #![no_main]
 use libfuzzer_sys::fuzz_target;
-use silvr_core::ingest::mcap::BagReader;
+use silvr_core::ingest::bag::BagReader;
 
 fuzz_target!(|data: &[u8]| {
     // libfuzzer-sys's panic hook aborts on every panic, even one caught: the mcap crate's own overflow

@@ -1,9 +1,12 @@
-//! Real data in: ROS 2 bags (MCAP + CDR), their sensor messages, and PCD clouds.
+//! Real data in: ROS 1 and ROS 2 bags (MCAP, `.db3`, `.bag`), their sensor messages, and PCD clouds.
 //!
 //! - [`cdr`]: zero-copy CDR cursor (and a writer for tests and our own bags).
 //! - [`ros`]: hand-written decoders of the message types the ingest uses, with conversion to points with
 //!   per-point time, RGB images and camera models.
-//! - [`mcap`] (native only): walks an MCAP file and dispatches by schema name.
+//! - [`bag`] (native only): a recording as one stream of messages whatever its container (recognised from
+//!   the content), with per-topic summaries; [`mcap`], [`ros1bag`] (ROS 1 format 2.0) and [`rosbag2`]
+//!   (`metadata.yaml` + SQLite `.db3` or MCAP) are its containers.
+//! - [`ros1`]: ROS 1 messages rewritten as CDR from the message definitions their bag carries.
 //! - [`config`] (native only): the rig file (Oxford Spires `sensor.yaml` + an `ingest:` block).
 //! - [`tf`]: static TF tree lookups.
 //! - [`rosbag`] (native only): a bag + rig file → the dataset layout (`silvr ingest`).
@@ -27,6 +30,8 @@
 //! Every reader treats its input as untrusted: errors, never panics, and no allocation larger than the
 //! input justifies.
 
+#[cfg(not(target_arch = "wasm32"))]
+pub mod bag;
 pub mod cdr;
 pub mod colmap;
 #[cfg(not(target_arch = "wasm32"))]
@@ -46,8 +51,13 @@ pub mod odometry_input;
 pub mod pcd;
 pub mod poses;
 pub mod ros;
+pub mod ros1;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod ros1bag;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod rosbag;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod rosbag2;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod spires;
 pub mod tf;

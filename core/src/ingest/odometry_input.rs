@@ -7,8 +7,8 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use super::bag::{summarize, BagError, BagReader};
 use super::kitti_import::{KittiImportError, KittiLidar};
-use super::mcap::{summarize, BagError, BagReader};
 use super::ros::RosMessage;
 use crate::geometry::Se3;
 use crate::odometry::{DeskewMode, Sweep};

@@ -28,6 +28,9 @@ pub enum DecodeError {
         msg_type: &'static str,
         reason: String,
     },
+    /// A ROS 1 message that could not be rewritten as CDR from its bag's message definition.
+    #[error("ROS 1 message: {0}")]
+    Ros1(String),
 }
 
 fn invalid(msg_type: &'static str, reason: impl Into<String>) -> DecodeError {
@@ -1176,6 +1179,10 @@ pub enum RosMessage<'a> {
 
 /// The canonical ROS 2 name (`pkg/msg/Type`) of a schema name, accepting the ROS 1 spelling `pkg/Type`.
 pub fn canonical_type(name: &str) -> String {
+    // ROS 1's `tf` package had its own TF message with the same layout as tf2's.
+    if name == "tf/tfMessage" || name == "tf/msg/tfMessage" {
+        return "tf2_msgs/msg/TFMessage".into();
+    }
     match name.split_once('/') {
         Some((pkg, ty)) if !ty.contains('/') => format!("{pkg}/msg/{ty}"),
         _ => name.to_string(),

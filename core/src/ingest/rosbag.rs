@@ -1,4 +1,4 @@
-//! A ROS 2 bag → the project's dataset (`DATASET.md`), the path real data takes into training.
+//! A ROS 1 or ROS 2 bag (any container [`super::bag`] reads) → the project's dataset (`DATASET.md`), the path real data takes into training.
 //!
 //! Two streaming passes over the MCAP, so memory holds only the keyframes being assembled:
 //! 1. **Index**: per-topic counts; `/tf_static`; CameraInfo; the trajectory messages; the stamp and frame
@@ -18,8 +18,8 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use serde::Serialize;
 
+use super::bag::{BagError, BagReader};
 use super::config::{se3_from_t_xyz_q_xyzw, ConfigError, RigConfig};
-use super::mcap::{BagError, BagReader};
 use super::ros::{self, CameraInfo, LidarScan, RgbImage, RosMessage};
 use super::tf::TfGraph;
 use crate::camera::CameraModel;
@@ -161,12 +161,7 @@ pub async fn ingest_bag(
     };
     let ing = &cfg.ingest;
     let cams = &cfg.sensor.cameras;
-    let bytes = std::fs::metadata(bag)
-        .map_err(|source| BagError::Io {
-            file: file.clone(),
-            source,
-        })?
-        .len();
+    let bytes = super::bag::bag_bytes(bag)?;
     // Refuse early, before reading a possibly huge bag, when the output cannot be written.
     let writer = DatasetWriter::create(out, overwrite)?;
 
@@ -819,7 +814,7 @@ fn other_type(m: &RosMessage) -> &'static str {
     }
 }
 
-fn reader_decode(file: &str, msg: &super::mcap::BagMessage, e: ros::DecodeError) -> IngestError {
+fn reader_decode(file: &str, msg: &super::bag::BagMessage, e: ros::DecodeError) -> IngestError {
     IngestError::Bag(BagError::Decode {
         file: file.to_string(),
         index: msg.index,

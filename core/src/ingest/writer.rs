@@ -10,7 +10,7 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
-use super::mcap::BagError;
+use super::bag::BagError;
 use super::ros::Time;
 
 /// Separator between a schema's own definition and each of its dependencies (rosbag2's layout).
@@ -236,7 +236,7 @@ fn container(file: &str, source: mcap::McapError) -> BagError {
 mod tests {
     use super::*;
     use crate::geometry::Se3;
-    use crate::ingest::mcap::BagReader;
+    use crate::ingest::bag::BagReader;
     use crate::ingest::ros::{Header, RosMessage, TfMessage, TransformStamped};
     use glam::{DQuat, DVec3};
 

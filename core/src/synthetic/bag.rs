@@ -14,8 +14,8 @@ use super::sensors::Sweep;
 use super::Preset;
 use crate::dataset::png_rgb;
 use crate::geometry::{Se3, Trajectory};
+use crate::ingest::bag::BagError;
 use crate::ingest::config::{IngestSection, RigConfig};
-use crate::ingest::mcap::BagError;
 use crate::ingest::ros::{
     CameraInfo, CompressedImage, Header, Odometry, PointCloud2, PointField, RegionOfInterest,
     TfMessage, TransformStamped,

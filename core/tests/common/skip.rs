@@ -1,7 +1,7 @@
 //! The one way a test skips (core's tests through `mod common`, silvr-tests' through its library, which
 //! includes this file): a line `SKIP: <test>: <why>` that `scripts/test.sh` collects into its summary, or a
 //! failure when the run demands what is missing (`SILVR_REQUIRE_GPU=1`, `SILVR_REQUIRE_DATA=1`,
-//! `SILVR_REQUIRE_SLURM=1`: CI sets them, so a test cannot pass there by skipping).
+//! `SILVR_REQUIRE_SLURM=1`, `SILVR_REQUIRE_PEERS=1`: CI sets them, so a test cannot pass there by skipping).
 
 use std::io::Write;
 
