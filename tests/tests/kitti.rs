@@ -210,3 +210,182 @@ fn a_kitti_sequence_without_a_trajectory_gets_lidar_odometry_and_says_so() {
     assert!(!err.contains("panicked"), "{err}");
     assert!(!tmp.path().join("ds_short").exists(), "nothing is written");
 }
+
+/// A KITTI sequence as many converters write it to a ROS 2 bag — PointCloud2 with x, y, z, intensity only
+/// (no per-point time, no ring), the colour images, the ground-truth trajectory as nav_msgs/Odometry — goes
+/// through `silvr ingest` to the dataset `silvr import kitti` makes of the same sequence: same keyframes,
+/// images bit-equal, camera poses to 1e-6, lidar depth on the same pixels; nothing dropped silently, and
+/// both assumptions printed (issue 33). Training reads the two datasets alike because they are alike.
+#[test]
+fn a_kitti_sequence_as_a_bag_of_bare_clouds_ingests_like_the_import() {
+    use silvr_core::dataset::{read_png16, Transforms};
+    use silvr_core::ingest::config::{IngestSection, RigConfig};
+    use silvr_core::ingest::kitti::{read_bin_bytes, KITTI_STRIDE};
+    use silvr_core::ingest::ros::{CompressedImage, Header, Odometry, PointCloud2, PointField};
+    use silvr_core::ingest::writer::{ros_time, BagWriter};
+    use silvr_core::rig::Rig;
+
+    let Some(root) = silvr_tests::shared_data("real/kitti_odometry/sequences") else {
+        return;
+    };
+    let seq = root.join("00");
+    let tmp = tempfile::tempdir().unwrap();
+    let imported = tmp.path().join("imported");
+    let out = import(&seq, &imported, &[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rig: Rig =
+        serde_json::from_slice(&std::fs::read(imported.join("calib/rig.json")).unwrap()).unwrap();
+    let traj = read_tum(&imported.join("poses/lidar_tum.txt")).unwrap();
+
+    // The bag: one message of each kind per frame, stamped with the frame's time.
+    let bag = tmp.path().join("kitti.mcap");
+    let mut w = BagWriter::create(&bag).unwrap();
+    let cam_topic = |i: usize| {
+        format!(
+            "/kitti/camera_color_{}/image_raw/compressed",
+            ["left", "right"][i]
+        )
+    };
+    for (f, (&t, pose)) in traj.stamps().iter().zip(traj.poses()).enumerate() {
+        let header = |frame: &str| Header {
+            stamp: ros_time(t),
+            frame_id: frame.to_string(),
+        };
+        let odo = Odometry {
+            header: header("world"),
+            child_frame_id: rig.lidar_frame.clone(),
+            pose: *pose,
+            pose_covariance: [0.0; 36],
+            linear: glam::DVec3::ZERO,
+            angular: glam::DVec3::ZERO,
+            twist_covariance: [0.0; 36],
+        };
+        w.write(
+            "/odometry",
+            "nav_msgs/msg/Odometry",
+            ros_time(t),
+            &odo.encode(),
+        )
+        .unwrap();
+        let bin = seq.join(format!("velodyne/{f:06}.bin"));
+        let scan = read_bin_bytes(&std::fs::read(&bin).unwrap(), "bin", KITTI_STRIDE).unwrap();
+        let intensity = scan.cloud.scalar("intensity").unwrap();
+        let mut data = Vec::new();
+        for (p, i) in scan.cloud.positions.iter().zip(intensity) {
+            for v in [p.x as f32, p.y as f32, p.z as f32, *i] {
+                data.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        let n = scan.cloud.positions.len() as u32;
+        let pc = PointCloud2 {
+            header: header(&rig.lidar_frame),
+            height: 1,
+            width: n,
+            fields: ["x", "y", "z", "intensity"]
+                .iter()
+                .enumerate()
+                .map(|(k, name)| PointField::new(name, 4 * k as u32, PointField::FLOAT32))
+                .collect(),
+            is_bigendian: false,
+            point_step: 16,
+            row_step: 16 * n,
+            data: &data,
+            is_dense: true,
+        };
+        w.write(
+            "/kitti/velo/pointcloud",
+            "sensor_msgs/msg/PointCloud2",
+            ros_time(t),
+            &pc.encode(),
+        )
+        .unwrap();
+        for (i, dir) in ["image_2", "image_3"].iter().enumerate() {
+            let png = std::fs::read(seq.join(format!("{dir}/{f:06}.png"))).unwrap();
+            let img = CompressedImage {
+                header: header(&rig.cameras[i].name),
+                format: "png".into(),
+                data: &png,
+            };
+            w.write(
+                &cam_topic(i),
+                "sensor_msgs/msg/CompressedImage",
+                ros_time(t),
+                &img.encode(),
+            )
+            .unwrap();
+        }
+    }
+    w.finish().unwrap();
+    let mut cfg = RigConfig::from_rig(&rig, cam_topic);
+    cfg.ingest = IngestSection {
+        lidar_topic: "/kitti/velo/pointcloud".into(),
+        trajectory_topic: Some("/odometry".into()),
+        base_frame: rig.base_frame.clone(),
+        keyframe_distance: 0.0,
+        keyframe_angle_deg: 0.0,
+        ..IngestSection::default()
+    };
+    let rig_file = tmp.path().join("kitti.rig.yaml");
+    std::fs::write(&rig_file, cfg.to_yaml()).unwrap();
+
+    let ingested = tmp.path().join("ingested");
+    let out = Command::new(build_silvr())
+        .arg("ingest")
+        .arg(&bag)
+        .arg("--config")
+        .arg(&rig_file)
+        .arg("--out")
+        .arg(&ingested)
+        .arg("--json")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("no per-point time") && err.contains("no 'ring' field"),
+        "{err}"
+    );
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(summary["dropped"], serde_json::json!({}), "{summary}");
+    assert_eq!(summary["keyframes"], 10);
+
+    let ta = Transforms::read(&imported.join("transforms.json")).unwrap();
+    let tb = Transforms::read(&ingested.join("transforms.json")).unwrap();
+    assert_eq!(ta.frames.len(), tb.frames.len());
+    let (mut pixels, mut differing) = (0usize, 0usize);
+    for (fa, fb) in ta.frames.iter().zip(&tb.frames) {
+        assert_eq!(
+            silvr_core::dataset::read_rgb(&imported.join(&fa.file_path)).unwrap(),
+            silvr_core::dataset::read_rgb(&ingested.join(&fb.file_path)).unwrap(),
+            "{}",
+            fa.file_path
+        );
+        for (ra, rb) in fa.transform_matrix.iter().zip(&fb.transform_matrix) {
+            for (x, y) in ra.iter().zip(rb) {
+                assert!((x - y).abs() < 1e-6, "{}: {ra:?} vs {rb:?}", fa.file_path);
+            }
+        }
+        let da = read_png16(&imported.join(fa.depth_file_path.as_ref().unwrap()))
+            .unwrap()
+            .2;
+        let db = read_png16(&ingested.join(fb.depth_file_path.as_ref().unwrap()))
+            .unwrap()
+            .2;
+        for (a, b) in da.iter().zip(&db) {
+            if *a > 0 && *a < u16::MAX {
+                pixels += 1;
+                differing += usize::from(a.abs_diff(*b) > 1);
+            }
+        }
+    }
+    println!("lidar pixels {pixels}, differing {differing}");
+    assert!(pixels > 10_000, "{pixels}");
+    assert!(
+        differing * 1000 <= pixels,
+        "{differing} of {pixels} lidar pixels differ"
+    );
+}

@@ -93,9 +93,12 @@ pub struct IngestSummary {
 #[derive(Clone, Debug)]
 struct SweepRef {
     index: u64,
-    /// Absolute time of its first and last point (s).
+    /// Absolute time of its first and last point (s); for a cloud without per-point time, the time span
+    /// it stands for (its stamp ± half the sweep period, set after pass 1).
     start: f64,
     end: f64,
+    /// Whether its points carry their own times.
+    timed: bool,
 }
 
 /// One image as seen in pass 1.
@@ -133,6 +136,10 @@ struct Index {
     max_ring: Option<u16>,
     column_estimates: Vec<usize>,
     dropped: BTreeMap<String, u64>,
+    /// Sweeps without per-point time (treated as motion-compensated to their stamp) and without `ring`
+    /// (beams from an angular grid).
+    untimed: u64,
+    ringless: u64,
 }
 
 fn secs(t: ros::Time) -> f64 {
@@ -250,12 +257,17 @@ pub async fn ingest_bag(
                         lo = lo.min(t);
                         hi = hi.max(t);
                     }
-                    if scan.times.is_none() || scan.positions.is_empty() {
-                        drop_count(
-                            &mut ix.dropped,
-                            format!("{topic}: sweep without per-point time or points"),
-                        );
+                    if scan.positions.is_empty() {
+                        drop_count(&mut ix.dropped, format!("{topic}: sweep without points"));
                     } else {
+                        let timed = scan.times.is_some();
+                        if !timed {
+                            (lo, hi) = (0.0, 0.0);
+                            ix.untimed += 1;
+                        }
+                        if scan.rings.is_none() {
+                            ix.ringless += 1;
+                        }
                         ix.lidar_frame.get_or_insert_with(|| scan.frame_id.clone());
                         if let Some(r) = scan
                             .rings
@@ -277,6 +289,7 @@ pub async fn ingest_bag(
                             index: msg.index,
                             start: stamp + lo,
                             end: stamp + hi,
+                            timed,
                         });
                         used = true;
                     }
@@ -530,24 +543,67 @@ pub async fn ingest_bag(
         }
     }
 
-    // ---- lidar geometry ---------------------------------------------------------------------------
-    let beams = ix.max_ring.map(|r| r as usize + 1).ok_or_else(|| {
-        unusable(format!(
-            "the lidar topic '{}' has no 'ring' field: the range image (normals, sky) needs each point's beam",
+    // ---- clouds as they come: without per-point time, without ring ---------------------------------
+    if ix.untimed > 0 {
+        // A cloud without per-point times stands for the sweep period around its stamp: the median
+        // interval between stamps.
+        let mut stamps: Vec<f64> = ix
+            .sweeps
+            .iter()
+            .filter(|s| !s.timed)
+            .map(|s| s.start)
+            .collect();
+        stamps.sort_by(f64::total_cmp);
+        let mut d: Vec<f64> = stamps
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .filter(|&d| d > 0.0)
+            .collect();
+        d.sort_by(f64::total_cmp);
+        let period = d.get(d.len() / 2).copied().unwrap_or(0.1);
+        for s in ix.sweeps.iter_mut().filter(|s| !s.timed) {
+            (s.start, s.end) = (s.start - 0.5 * period, s.start + 0.5 * period);
+        }
+        notices.push(format!(
+            "{} of {} sweeps on '{}' have no per-point time: taken as already motion-compensated to their \
+             header stamp (deskewing moves them rigidly to each image's time); each stands for {:.3} s \
+             around its stamp (the median interval)",
+            ix.untimed,
+            ix.sweeps.len(),
+            ing.lidar_topic,
+            period
+        ));
+    }
+    if ix.ringless > 0 {
+        notices.push(format!(
+            "{} of {} sweeps on '{}' have no 'ring' field: their range image (normals, sky) is an angular \
+             grid of elevation and azimuth fitted to each sweep, as for KITTI .bin and DGP sweeps",
+            ix.ringless,
+            ix.sweeps.len(),
             ing.lidar_topic
-        ))
-    })?;
-    let columns = match ing.lidar_columns {
-        Some(c) => c as usize,
-        None => {
-            let mut s = ix.column_estimates.clone();
-            if s.is_empty() {
-                return Err(unusable(
-                    "cannot estimate the lidar's azimuth step (set ingest.lidar_columns)".into(),
-                ));
-            }
-            let mid = s.len() / 2;
-            *s.select_nth_unstable(mid).1
+        ));
+    }
+
+    // ---- lidar geometry ---------------------------------------------------------------------------
+    // The range image of sweeps with rings: beams from the largest ring, columns from the azimuth step.
+    let ring_grid = match ix.max_ring {
+        None => None,
+        Some(r) => {
+            let columns = match ing.lidar_columns {
+                Some(c) => c as usize,
+                None => {
+                    let mut s = ix.column_estimates.clone();
+                    if s.is_empty() {
+                        return Err(unusable(
+                            "cannot estimate the lidar's azimuth step (set ingest.lidar_columns)"
+                                .into(),
+                        ));
+                    }
+                    let mid = s.len() / 2;
+                    *s.select_nth_unstable(mid).1
+                }
+            };
+            Some((r as usize + 1, columns))
         }
     };
 
@@ -706,8 +762,7 @@ pub async fn ingest_bag(
                     &rig,
                     &trajectory,
                     kf,
-                    beams,
-                    columns,
+                    ring_grid,
                     ing.min_range,
                     &file,
                 )
@@ -736,7 +791,23 @@ pub async fn ingest_bag(
         base_poses,
         lidar_poses,
         cam_poses,
+        grids,
+        clamped,
+        not_finite,
     } = state;
+    if clamped > 0 {
+        notices.push(format!(
+            "{clamped} of {lidar_points} lidar points were fired beyond the trajectory's time span (the first \
+             and last sweeps straddle its ends): carried by the nearest pose, not dropped"
+        ));
+    }
+    if not_finite > 0 {
+        *dropped
+            .entry("lidar points: coordinates not finite".into())
+            .or_insert(0) += not_finite as u64;
+    }
+    // The range image's size: the rings' when the clouds have them, else the first keyframe's grid.
+    let (beams, columns) = ring_grid.or(grids.first().copied()).unwrap_or((0, 0));
     // Keyframes complete in bag order, which need not be time order: sort everything by keyframe.
     let mut order: Vec<usize> = (0..records.len()).collect();
     order.sort_by_key(|&i| records[i].index);
@@ -759,6 +830,11 @@ pub async fn ingest_bag(
         frame: lidar_frame.clone(),
         beams,
         columns,
+        range_image: if ring_grid.is_some() {
+            "beams from the clouds' ring field, columns from the azimuth step"
+        } else {
+            "an angular grid fitted to each sweep (the clouds have no ring field); beams x columns of the first"
+        },
         min_range: ing.min_range,
     };
     out.write_json("calib/lidar.json", &lidar)?;
@@ -833,6 +909,11 @@ struct WriteState {
     base_poses: Vec<Se3>,
     lidar_poses: Vec<Se3>,
     cam_poses: Vec<Vec<Se3>>,
+    /// Range-image size of each keyframe whose cloud has no ring (an angular grid per sweep).
+    grids: Vec<(usize, usize)>,
+    /// Lidar points carried by the nearest pose (fired beyond the trajectory) and dropped (not finite).
+    clamped: usize,
+    not_finite: usize,
 }
 
 /// Per-keyframe record in the manifest (same keys as the synthetic generator's).
@@ -851,6 +932,7 @@ struct LidarCalib {
     frame: String,
     beams: usize,
     columns: usize,
+    range_image: &'static str,
     min_range: f64,
 }
 
@@ -896,8 +978,7 @@ async fn write_keyframe(
     rig: &Rig,
     trajectory: &Trajectory,
     kf: Pending,
-    beams: usize,
-    columns: usize,
+    ring_grid: Option<(usize, usize)>,
     min_range: f64,
     file: &str,
 ) -> Result<(), IngestError> {
@@ -905,14 +986,29 @@ async fn write_keyframe(
     let name = format!("{k:05}");
     let scan = kf.got_sweep.expect("complete");
     let stamp = secs(scan.stamp);
-    let rel_times = scan.times.clone().unwrap_or_default();
+    // A cloud without per-point time is taken as motion-compensated to its stamp.
+    let rel_times = scan
+        .times
+        .clone()
+        .unwrap_or_else(|| vec![0.0; scan.positions.len()]);
     let abs_times: Vec<f64> = rel_times.iter().map(|&r| stamp + r).collect();
-    let rings: Vec<u16> = scan.rings.clone().unwrap_or_default();
-    let column: Vec<u16> = scan
-        .positions
-        .iter()
-        .map(|&p| normals::column_of(p, columns))
-        .collect();
+    // Beam and column of each point: the cloud's rings and the rig's azimuth step, or, for a cloud
+    // without rings, an angular grid fitted to this sweep.
+    let (rings, column, beams, columns) = match (&scan.rings, ring_grid) {
+        (Some(r), Some((beams, columns))) => {
+            let column = scan
+                .positions
+                .iter()
+                .map(|&p| normals::column_of(p, columns))
+                .collect();
+            (r.clone(), column, beams, columns)
+        }
+        _ => {
+            let grid = normals::angular_grid(&scan.positions);
+            st.grids.push((grid.2, grid.3));
+            grid
+        }
+    };
     let desk = deskew::deskew(&scan.positions, &abs_times, trajectory, kf.time).map_err(|e| {
         IngestError::Unusable {
             file: file.to_string(),
@@ -1002,6 +1098,8 @@ async fn write_keyframe(
         raw_points: scan.positions.len(),
         deskewed_dropped: desk.dropped,
     });
+    st.clamped += desk.clamped;
+    st.not_finite += desk.dropped;
     st.lidar_points += scan.positions.len();
     st.times.push(kf.time);
     st.lidar_poses.push(t_world_lidar);

@@ -16,12 +16,15 @@ pub enum DeskewError {
     Length(usize, usize),
 }
 
-/// Deskewed positions plus the number of points dropped because their time lay outside the trajectory or
-/// a coordinate was not finite (those entries are NaN, so indices still line up with the input).
+/// Deskewed positions, the number of points dropped because a coordinate was not finite (those entries
+/// are NaN, so indices still line up with the input), and the number whose time lay beyond the
+/// trajectory's span: those are carried by the nearest pose (the span's end), never dropped silently —
+/// the first and last sweeps of a recording straddle its trajectory's ends.
 #[derive(Clone, Debug)]
 pub struct Deskewed {
     pub positions: Vec<DVec3>,
     pub dropped: usize,
+    pub clamped: usize,
 }
 
 /// Deskews `positions` (sensor frame at `times`) to `t_ref`. `trajectory` holds `T_world_lidar`.
@@ -43,10 +46,15 @@ pub fn deskew(
     let inv_ref = reference.inverse();
     let mut cached: Option<(f64, Option<Se3>)> = None;
     let mut dropped = 0;
+    let mut clamped = 0;
     let out = positions
         .iter()
         .zip(times)
         .map(|(p, &t)| {
+            if t.is_finite() && (t < t0 || t > t1) && p.is_finite() {
+                clamped += 1;
+            }
+            let t = if t.is_finite() { t.clamp(t0, t1) } else { t };
             let rel = match cached {
                 Some((ct, rel)) if ct == t => rel,
                 _ => {
@@ -67,5 +75,31 @@ pub fn deskew(
     Ok(Deskewed {
         positions: out,
         dropped,
+        clamped,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DQuat;
+
+    /// A rig moving along +x at 1 m/s from t = 10 to 11 s.
+    fn straight() -> Trajectory {
+        let at = |t: f64| Se3::new(DQuat::IDENTITY, DVec3::new(t - 10.0, 0.0, 0.0));
+        Trajectory::new(vec![10.0, 10.5, 11.0], vec![at(10.0), at(10.5), at(11.0)]).unwrap()
+    }
+
+    #[test]
+    fn points_beyond_the_span_are_carried_by_the_nearest_pose_and_counted() {
+        let p = DVec3::new(5.0, 0.0, 0.0);
+        let (pos, times) = (vec![p, p, p, DVec3::NAN], vec![9.8, 10.5, 11.3, 10.5]);
+        let d = deskew(&pos, &times, &straight(), 10.5).unwrap();
+        // 9.8 s is carried by the pose at 10 s (0.5 m behind the reference), 11.3 s by the one at 11 s.
+        assert!((d.positions[0] - DVec3::new(4.5, 0.0, 0.0)).length() < 1e-12);
+        assert!((d.positions[1] - p).length() < 1e-12);
+        assert!((d.positions[2] - DVec3::new(5.5, 0.0, 0.0)).length() < 1e-12);
+        assert!(d.positions[3].is_nan());
+        assert_eq!((d.clamped, d.dropped), (2, 1));
+    }
 }
