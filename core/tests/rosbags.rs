@@ -363,18 +363,24 @@ fn synthetic_world_as_ros1_and_db3_ingests_like_its_mcap() {
     .unwrap();
     let ros1 = dir.join("scene.bag");
     let db3 = dir.join("scene_db3");
-    let conv = peer(
-        &py,
-        &[
+    let convert = |ros1: &Path, db3: &Path, extra: &[&str]| {
+        let mut args = vec![
             "convert",
             mcap.to_str().unwrap(),
             "--ros1",
             ros1.to_str().unwrap(),
             "--db3",
             db3.to_str().unwrap(),
-        ],
-    );
+        ];
+        args.extend_from_slice(extra);
+        peer(&py, &args)
+    };
+    let conv = convert(&ros1, &db3, &[]);
     println!("rosbags wrote {conv}");
+    // The .db3 compressed as rosbag2 does it: the whole file, or each message, with zstd.
+    let (db3_file, db3_msg) = (dir.join("zstd_file"), dir.join("zstd_message"));
+    convert(&dir.join("f.bag"), &db3_file, &["--zstd", "file"]);
+    convert(&dir.join("m.bag"), &db3_msg, &["--zstd", "message"]);
     let cfg = RigConfig::parse(&rig_config(&preset).to_yaml(), "scene.rig.yaml").unwrap();
     let ingest = |bag: &Path, out: &str| {
         let s = pollster::block_on(ingest_bag(
@@ -393,7 +399,12 @@ fn synthetic_world_as_ros1_and_db3_ingests_like_its_mcap() {
     };
     let reference = ingest(&mcap, "from_mcap");
     assert!(reference.len() > 20, "{:?}", reference.keys());
-    for (bag, out) in [(&ros1, "from_ros1"), (&db3, "from_db3")] {
+    for (bag, out) in [
+        (&ros1, "from_ros1"),
+        (&db3, "from_db3"),
+        (&db3_file, "from_db3_zstd_file"),
+        (&db3_msg, "from_db3_zstd_message"),
+    ] {
         assert_eq!(
             summarize(bag).unwrap().messages,
             conv["messages"].as_u64().unwrap()
