@@ -96,7 +96,7 @@ if [ "$purpose" = test ]; then
   # environment of their own: Debian's Python
   # refuses `pip install` outside one (PEP 668). scripts/test.sh runs the cross-check with its python.
   venv="${SILVR_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/silvr-venv}"
-  if ! "$venv/bin/python" -c 'import numpy, scipy, rosbags, mcap' >/dev/null 2>&1; then
+  if ! "$venv/bin/python" -c 'import numpy, scipy, rosbags, mcap, pye57, laspy, lazrs' >/dev/null 2>&1; then
     if [ -e "$venv" ] && [ ! -f "$venv/pyvenv.cfg" ]; then
       echo "$venv exists and is not a virtual environment: move it away or set SILVR_VENV" >&2; exit 1
     fi

@@ -82,9 +82,14 @@ enum Command {
         /// Reconstruction point cloud (PLY).
         #[arg(long)]
         reconstruction: PathBuf,
-        /// Dataset (or folder) holding gt/cloud.ply and optionally gt/observed.bin.
+        /// Dataset (or folder) holding gt/cloud.ply and optionally gt/observed.bin, or a scanner's
+        /// point-cloud file: E57 (every scan, each placed by its pose), LAS/LAZ, PLY or PCD.
         #[arg(long)]
         gt: PathBuf,
+        /// A point-cloud --gt's pose in the map's frame (T_map_scan): a row-major 4x4 (16 numbers) or a
+        /// TUM pose `x y z qx qy qz qw`.
+        #[arg(long, allow_hyphen_values = true)]
+        gt_transform: Option<String>,
         /// Write the JSON report here (printed to stdout otherwise).
         #[arg(long)]
         out: Option<PathBuf>,
@@ -573,6 +578,7 @@ fn main() {
         Command::Eval {
             reconstruction,
             gt,
+            gt_transform,
             out,
             error_ply,
             keep_unknown,
@@ -580,6 +586,7 @@ fn main() {
         } => eval_cmd(
             &reconstruction,
             &gt,
+            gt_transform.as_deref(),
             out.as_deref(),
             error_ply.as_deref(),
             keep_unknown,
@@ -1034,6 +1041,7 @@ fn synth(preset: &str, seed: u64, out: &Path, overwrite: bool) -> Result<generat
 fn eval_cmd(
     rec: &Path,
     gt: &Path,
+    gt_transform: Option<&str>,
     out: Option<&Path>,
     error_ply: Option<&Path>,
     keep_unknown: bool,
@@ -1055,7 +1063,23 @@ fn eval_cmd(
         reconstruction_to_gt: alignment,
         ..GeometryOptions::default()
     };
-    let ev = eval::evaluate_files_full(rec, gt, &options)?;
+    let ev = if gt.is_file() {
+        // A scanner's point cloud as the reference.
+        let transform = gt_transform
+            .map(silvr_core::eval::scan::parse_transform)
+            .transpose()
+            .map_err(|e| anyhow::anyhow!("--gt-transform: {e}"))?;
+        let (truth, notes) = eval::GroundTruth::from_scan(gt, transform, &options)?;
+        let mut ev = truth.evaluate(&silvr_core::pointcloud::read_ply(rec)?, &options)?;
+        ev.report.notes.extend(notes);
+        ev
+    } else {
+        anyhow::ensure!(
+            gt_transform.is_none(),
+            "--gt-transform applies to a point-cloud --gt file, not a dataset folder"
+        );
+        eval::evaluate_files_full(rec, gt, &options)?
+    };
     if let Some(p) = error_ply {
         write_error_cloud(&ev, p)?;
     }

@@ -19,6 +19,8 @@ pub mod options;
 pub mod plot;
 pub mod poses;
 pub mod report;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod scan;
 pub mod seen;
 
 pub use image::{psnr, psnr_rgb8, ssim, ssim_rgb8, ImageMetricError};
@@ -47,6 +49,9 @@ pub enum EvalError {
     EmptyGroundTruth { file: String },
     #[error("invalid evaluation options: {0}")]
     BadOptions(String),
+    #[cfg(not(target_arch = "wasm32"))]
+    #[error(transparent)]
+    Scan(#[from] scan::ScanError),
     #[error("{file}: {source}")]
     Io {
         file: String,
@@ -126,6 +131,30 @@ impl GroundTruth {
             .map(OccupancyGrid::load)
             .transpose()?;
         Ok(Self { paths, cloud, grid })
+    }
+
+    /// A scanner's point-cloud file as the ground truth (E57, LAS/LAZ, PLY, PCD: [`scan::read_scan`]),
+    /// moved into the map's frame by `transform` (`T_map_scan`) and, for a file beyond
+    /// [`scan::MAX_EXACT_POINTS`], voxelised at the evaluation's voxel size while read. It has no
+    /// observed-space grid, so the unknown-space filter is not applied (the report's notes say so), and
+    /// the notes say how the scan was read.
+    #[cfg(not(target_arch = "wasm32"))]
+    pub fn from_scan(
+        path: &Path,
+        transform: Option<glam::DMat4>,
+        options: &GeometryOptions,
+    ) -> Result<(Self, Vec<String>), EvalError> {
+        let voxel = options.voxel_size_m.filter(|_| options.downsample_gt);
+        let s = scan::read_scan(path, transform, voxel)?;
+        let truth = Self {
+            paths: GroundTruthPaths {
+                cloud: path.to_path_buf(),
+                observed: None,
+            },
+            cloud: s.cloud,
+            grid: None,
+        };
+        Ok((truth, s.notes))
     }
 
     /// Scores `rec` against it. Without an observed-space grid the unknown-space filter is skipped and the
