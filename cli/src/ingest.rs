@@ -420,12 +420,14 @@ fn parse_frame_range(s: &str) -> Result<(usize, usize), String> {
 
 #[derive(clap::Args)]
 pub struct ExportCmd {
-    /// Target layout: `colmap` (text model: cameras.txt, images.txt, empty points3D.txt) or `spires`
-    /// (sensor.yaml, raw/camN/ images, undistorted PCD clouds, slam-poses.csv).
+    /// Target layout: `colmap` (text model: cameras.txt, images.txt, empty points3D.txt), `spires`
+    /// (sensor.yaml, raw/camN/ images, undistorted PCD clouds, slam-poses.csv) or `las` (a point cloud
+    /// PLY as LAS 1.4 / LAZ by --out's extension, its scalars — uncertainty, submap, error — as
+    /// extra-bytes dimensions).
     pub format: String,
-    /// Dataset folder (holding transforms.json).
+    /// Dataset folder (holding transforms.json); for `las`, the PLY.
     pub dataset: PathBuf,
-    /// Output folder.
+    /// Output folder (for `las`: the .laz or .las file).
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -446,7 +448,23 @@ pub fn export(c: ExportCmd) -> Result<()> {
             println!("wrote {} images to {}", n, c.out.display());
             Ok(())
         }
-        other => anyhow::bail!("unknown export format {other:?} (supported: colmap, spires)"),
+        "las" | "laz" => {
+            // DATASET is a point cloud here: a PLY the pipeline wrote (points.ply, merged.ply, ...).
+            let cloud = silvr_core::pointcloud::read_ply(&c.dataset)?;
+            let n = silvr_core::lasfile::write_las(&c.out, &cloud)?;
+            let dims: Vec<&str> = cloud.scalars.iter().map(|(k, _)| k.as_str()).collect();
+            println!(
+                "wrote {n} points to {} (extra dimensions: {})",
+                c.out.display(),
+                if dims.is_empty() {
+                    "none".into()
+                } else {
+                    dims.join(", ")
+                }
+            );
+            Ok(())
+        }
+        other => anyhow::bail!("unknown export format {other:?} (supported: colmap, spires, las)"),
     }
 }
 

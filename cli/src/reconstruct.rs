@@ -39,7 +39,8 @@ use crate::train::{self, TrainArgs};
 pub struct ReconstructCmd {
     /// Dataset folder (its transforms.json).
     pub dataset: PathBuf,
-    /// Output folder (submaps/, train/submap_NN/, merged.ply, report.json); rerun on it to finish a job.
+    /// Output folder (submaps/, train/submap_NN/, merged.ply + merged.laz, report.json); rerun on it to
+    /// finish a job.
     #[arg(long)]
     pub out: PathBuf,
     /// The poses stage first: `refine` (`silvr poses`: the dataset's poses are the SLAM prior, refined by
@@ -627,6 +628,9 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
     for (path, cloud) in [(&merged_path, &merged), (&merged_all_path, &merged_all)] {
         write_ply(path, cloud).with_context(|| format!("writing {}", path.display()))?;
     }
+    // The filtered map also as LAZ 1.4 for survey and GIS tools (uncertainty and submap as extra bytes).
+    let merged_laz = out.join("merged.laz");
+    silvr_core::lasfile::write_las(&merged_laz, &merged)?;
     eprintln!(
         "[reconstruct] merged {} submaps: {} points ({} before the uncertainty filter) → {}",
         filtered.len(),

@@ -22,6 +22,8 @@ pub mod geometry;
 pub mod gpu;
 pub mod ingest;
 pub mod job;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod lasfile;
 pub mod lidar;
 pub mod odometry;
 pub mod pointcloud;

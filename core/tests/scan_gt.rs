@@ -404,3 +404,81 @@ fn shared_e57_and_las_files_read_as_pye57_and_laspy_read_them() {
         }
     }
 }
+
+/// Our LAZ as laspy reads it: every scalar of the cloud is an extra dimension with its name, values equal
+/// to the PLY's (float32), positions within half the 0.1 mm step, colours 8-bit × 257.
+#[test]
+fn laspy_reads_our_laz_with_every_extra_dimension() {
+    let Some(py) = scan_python() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let mut cloud = scene();
+    let n = cloud.len();
+    for (k, name) in [
+        "log_std_colour",
+        "log_std_depth",
+        "log_std_combined",
+        "submap",
+        "error_m",
+    ]
+    .iter()
+    .enumerate()
+    {
+        cloud.set_scalar(
+            name,
+            (0..n)
+                .map(|i| ((i * (k + 3)) % 101) as f32 * 0.013 - 0.4)
+                .collect(),
+        );
+    }
+    let laz = tmp.path().join("map.laz");
+    assert_eq!(silvr_core::lasfile::write_las(&laz, &cloud).unwrap(), n);
+    let code = "import json, sys, laspy\n\
+                f = laspy.read(sys.argv[1])\n\
+                d = {n: [float(v) for v in f[n]] for n in f.point_format.extra_dimension_names}\n\
+                d['xyz'] = [[float(a), float(b), float(c)] for a, b, c in zip(f.x, f.y, f.z)]\n\
+                d['red'] = [int(v) for v in f.red]\n\
+                d['version'] = str(f.header.version)\n\
+                print(json.dumps(d))";
+    let out = std::process::Command::new(&py)
+        .args(["-c", code])
+        .arg(&laz)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let d: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(d["version"], "1.4");
+    for (name, values) in &cloud.scalars {
+        let got = d[name]
+            .as_array()
+            .unwrap_or_else(|| panic!("laspy has no dimension {name}"));
+        assert_eq!(got.len(), n);
+        for (a, b) in values.iter().zip(got) {
+            assert_eq!(*a, b.as_f64().unwrap() as f32, "{name}");
+        }
+    }
+    for (i, xyz) in d["xyz"].as_array().unwrap().iter().enumerate() {
+        let q = DVec3::new(
+            xyz[0].as_f64().unwrap(),
+            xyz[1].as_f64().unwrap(),
+            xyz[2].as_f64().unwrap(),
+        );
+        assert!(
+            (q - cloud.positions[i]).abs().max_element() <= 0.5e-4 + 1e-9,
+            "point {i}"
+        );
+    }
+    let reds: Vec<u64> = d["red"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap())
+        .collect();
+    assert!(reds
+        .iter()
+        .zip(cloud.colors.as_ref().unwrap())
+        .all(|(r, c)| *r == c[0] as u64 * 257));
+}
