@@ -219,6 +219,15 @@ fn a_scan_in_any_format_scores_like_the_same_points_as_ply() {
             "{}: points moved by {worst} m",
             path.display()
         );
+        // Read from memory (the fuzz target's way) it is the same scan.
+        let bytes = std::fs::read(path).unwrap();
+        let mem = silvr_core::eval::scan::read_scan_bytes(&bytes, path, *transform, None).unwrap();
+        assert_eq!(
+            mem.cloud.positions,
+            scan.cloud.positions,
+            "{}",
+            path.display()
+        );
         let (truth, notes) = GroundTruth::from_scan(path, *transform, &options).unwrap();
         let got = serde_json::to_value(&truth.evaluate(&rec, &options).unwrap().report).unwrap();
         assert_same_scores(&reference, &got, 1e-6, &path.display().to_string());

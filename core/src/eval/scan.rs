@@ -15,8 +15,14 @@ use std::path::Path;
 
 use glam::{DMat4, DVec3};
 
-use crate::ingest::pcd::read_pcd;
-use crate::pointcloud::{read_ply, PointCloud, VoxelMap};
+use std::io::Seek;
+
+use crate::ingest::pcd::{read_pcd, read_pcd_bytes};
+use crate::pointcloud::{read_ply, read_ply_bytes, PointCloud, VoxelMap};
+
+/// A seekable byte source (a file or bytes in memory) for the E57 reader.
+trait ReadSeek: Read + Seek {}
+impl<T: Read + Seek> ReadSeek for T {}
 
 /// Above this many points (from the file's header) the scan is voxelised while it is read.
 pub const MAX_EXACT_POINTS: u64 = 20_000_000;
@@ -45,6 +51,24 @@ fn err(path: &Path, reason: impl Into<String>) -> ScanError {
     }
 }
 
+fn detect_head(head: &[u8]) -> Option<ScanFormat> {
+    if head.starts_with(b"ASTM-E57") {
+        Some(ScanFormat::E57)
+    } else if head.starts_with(b"LASF") {
+        Some(ScanFormat::Las)
+    } else if head.starts_with(b"ply") {
+        Some(ScanFormat::Ply)
+    } else if head.starts_with(b"#") || head.starts_with(b"VERSION") || head.starts_with(b"FIELDS")
+    {
+        Some(ScanFormat::Pcd)
+    } else {
+        None
+    }
+}
+
+const NOT_A_CLOUD: &str =
+    "not a point cloud this reads (E57, LAS/LAZ, PLY or PCD, recognised from the first bytes)";
+
 /// Recognises a point-cloud file from its first bytes.
 pub fn detect(path: &Path) -> Result<ScanFormat, ScanError> {
     let mut head = [0u8; 16];
@@ -59,22 +83,38 @@ pub fn detect(path: &Path) -> Result<ScanFormat, ScanError> {
             k => n += k,
         }
     }
-    let head = &head[..n];
-    if head.starts_with(b"ASTM-E57") {
-        Ok(ScanFormat::E57)
-    } else if head.starts_with(b"LASF") {
-        Ok(ScanFormat::Las)
-    } else if head.starts_with(b"ply") {
-        Ok(ScanFormat::Ply)
-    } else if head.starts_with(b"#") || head.starts_with(b"VERSION") || head.starts_with(b"FIELDS")
-    {
-        Ok(ScanFormat::Pcd)
-    } else {
-        Err(err(
-            path,
-            "not a point cloud this reads (E57, LAS/LAZ, PLY or PCD, recognised from the first bytes)",
-        ))
+    detect_head(&head[..n]).ok_or_else(|| err(path, NOT_A_CLOUD))
+}
+
+/// Where a scan is read from.
+#[derive(Clone, Copy)]
+enum Input<'a> {
+    File(&'a Path),
+    /// Bytes in memory (the fuzz target), named for errors.
+    Bytes(&'a [u8], &'a Path),
+}
+
+impl Input<'_> {
+    fn name(&self) -> &Path {
+        match self {
+            Input::File(p) | Input::Bytes(_, p) => p,
+        }
     }
+}
+
+/// [`read_scan`] over bytes in memory; `name` names them in errors. The fuzz target reads this way.
+pub fn read_scan_bytes(
+    bytes: &[u8],
+    name: &Path,
+    transform: Option<DMat4>,
+    voxel: Option<f64>,
+) -> Result<Scan, ScanError> {
+    read_with(
+        Input::Bytes(bytes, name),
+        transform,
+        voxel,
+        MAX_EXACT_POINTS,
+    )
 }
 
 /// Where read points go: kept all, or accumulated per voxel.
@@ -198,7 +238,7 @@ pub fn read_scan(
     transform: Option<DMat4>,
     voxel: Option<f64>,
 ) -> Result<Scan, ScanError> {
-    read_with(path, transform, voxel, MAX_EXACT_POINTS)
+    read_with(Input::File(path), transform, voxel, MAX_EXACT_POINTS)
 }
 
 /// The streaming voxeliser [`read_scan`] uses beyond [`MAX_EXACT_POINTS`], whatever the file's size (for
@@ -208,7 +248,7 @@ pub fn voxelise_while_reading(
     transform: Option<DMat4>,
     voxel: f64,
 ) -> Result<PointCloud, ScanError> {
-    let s = read_with(path, transform, Some(voxel), 0)?;
+    let s = read_with(Input::File(path), transform, Some(voxel), 0)?;
     Ok(match s.format {
         ScanFormat::E57 | ScanFormat::Las => s.cloud,
         ScanFormat::Ply | ScanFormat::Pcd => s.cloud.voxel_downsample(voxel),
@@ -216,18 +256,33 @@ pub fn voxelise_while_reading(
 }
 
 fn read_with(
-    path: &Path,
+    input: Input,
     transform: Option<DMat4>,
     voxel: Option<f64>,
     threshold: u64,
 ) -> Result<Scan, ScanError> {
-    let format = detect(path)?;
+    let path = input.name();
+    let format = match input {
+        Input::File(p) => detect(p)?,
+        Input::Bytes(b, p) => {
+            detect_head(&b[..b.len().min(16)]).ok_or_else(|| err(p, NOT_A_CLOUD))?
+        }
+    };
     let t = transform.unwrap_or(DMat4::IDENTITY);
     let mut notes = Vec::new();
     let mut read = 0u64;
     let cloud = match format {
         ScanFormat::E57 => {
-            let mut r = e57::E57Reader::from_file(path).map_err(|e| err(path, e.to_string()))?;
+            let mut r: e57::E57Reader<Box<dyn ReadSeek>> = match input {
+                Input::File(p) => {
+                    let f = std::fs::File::open(p).map_err(|e| err(p, e.to_string()))?;
+                    e57::E57Reader::new(Box::new(std::io::BufReader::new(f)) as Box<dyn ReadSeek>)
+                }
+                Input::Bytes(b, _) => e57::E57Reader::new(
+                    Box::new(std::io::Cursor::new(b.to_vec())) as Box<dyn ReadSeek>,
+                ),
+            }
+            .map_err(|e| err(path, e.to_string()))?;
             let clouds = r.pointclouds();
             let total: u64 = clouds.iter().map(|c| c.records).sum();
             let mut sink = Sink::new(voxel, total, threshold);
@@ -259,7 +314,11 @@ fn read_with(
             sink.finish()
         }
         ScanFormat::Las => {
-            let mut r = las::Reader::from_path(path).map_err(|e| err(path, e.to_string()))?;
+            let mut r = match input {
+                Input::File(p) => las::Reader::from_path(p),
+                Input::Bytes(b, _) => las::Reader::new(std::io::Cursor::new(b.to_vec())),
+            }
+            .map_err(|e| err(path, e.to_string()))?;
             let total = r.header().number_of_points();
             let mut sink = Sink::new(voxel, total, threshold);
             let mut batch = las::PointDataBuilder::new().for_header(r.header()).build();
@@ -282,10 +341,19 @@ fn read_with(
             sink.finish()
         }
         ScanFormat::Ply | ScanFormat::Pcd => {
+            let name = path.display().to_string();
             let mut cloud = if format == ScanFormat::Ply {
-                read_ply(path).map_err(|e| err(path, e.to_string()))?
+                match input {
+                    Input::File(p) => read_ply(p),
+                    Input::Bytes(b, _) => read_ply_bytes(b, &name),
+                }
+                .map_err(|e| err(path, e.to_string()))?
             } else {
-                let pcd = read_pcd(path).map_err(|e| err(path, e.to_string()))?;
+                let pcd = match input {
+                    Input::File(p) => read_pcd(p),
+                    Input::Bytes(b, _) => read_pcd_bytes(b, &name),
+                }
+                .map_err(|e| err(path, e.to_string()))?;
                 // A PCD's VIEWPOINT places the scan (the Oxford Spires GT convention).
                 let vp = pcd.viewpoint;
                 let mut c = pcd.cloud;

@@ -1,0 +1,10 @@
+//! Scanner ground truth (`silvr eval --gt FILE`): E57 (header, XML section, binary sections), LAS/LAZ
+//! (header, VLRs, point records, LAZ chunks), PLY and PCD read from bytes in memory by the `e57` and `las`
+//! crates and ours — errors naming the file, never a panic or a runaway allocation.
+#![no_main]
+use libfuzzer_sys::fuzz_target;
+use silvr_core::eval::scan::read_scan_bytes;
+
+fuzz_target!(|data: &[u8]| {
+    let _ = read_scan_bytes(data, std::path::Path::new("fuzz.scan"), None, Some(0.01));
+});
