@@ -2,7 +2,7 @@
 # Fuzzes the parsers of untrusted input with cargo-fuzz (libFuzzer) for a bounded time each:
 #   scripts/fuzz.sh [SECONDS_EACH=600] [TARGET ...]
 #   scripts/fuzz.sh --smoke [TARGET ...]    CI: every target built once, then each run for
-#                                           SILVR_FUZZ_SMOKE_SECS (default 6) seconds
+#                                           SILVR_FUZZ_SMOKE_SECS (default 4) seconds
 #   targets: cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar
 #            npz mcap http_head kitti_text ros1_bag ros1_definition rosbag2_metadata scan_file
 # Runs on stable Rust with `--sanitizer none` (the parsers are safe Rust: the fuzzer hunts panics, hangs,
@@ -17,7 +17,7 @@ smoke=0
 if [ "${1:-}" = --smoke ]; then
   smoke=1
   shift
-  secs="${SILVR_FUZZ_SMOKE_SECS:-6}"
+  secs="${SILVR_FUZZ_SMOKE_SECS:-4}"
 else
   secs="${1:-600}"
   [ $# -gt 0 ] && shift

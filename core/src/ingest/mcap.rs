@@ -14,13 +14,7 @@ use std::sync::Arc;
 use mcap::sans_io::LinearReaderOptions;
 use mcap::McapError;
 
-use super::bag::{BagError, Connection, MessageSource, RawMessage};
-
-/// Largest record (or decompressed chunk) accepted regardless of file size, so a corrupt length field
-/// cannot make the reader allocate without bound. rosbag2 writes chunks of a few MiB.
-pub(crate) const MAX_RECORD: u64 = 4 << 30;
-/// Smallest record limit, so legitimately well-compressed chunks of small files still read.
-pub(crate) const MIN_RECORD: u64 = 256 << 20;
+use super::container::{BagError, Connection, MessageSource, RawMessage, MAX_RECORD, MIN_RECORD};
 
 /// A short classification of an MCAP error for people reading logs.
 fn classify(e: &McapError) -> &'static str {

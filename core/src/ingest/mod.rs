@@ -5,7 +5,7 @@
 //!   per-point time, RGB images and camera models.
 //! - [`bag`] (native only): a recording as one stream of messages whatever its container (recognised from
 //!   the content), with per-topic summaries; [`mcap`], [`ros1bag`] (ROS 1 format 2.0) and [`rosbag2`]
-//!   (`metadata.yaml` + SQLite `.db3` or MCAP) are its containers.
+//!   (`metadata.yaml` + SQLite `.db3` or MCAP) are its containers, over what they share in [`container`].
 //! - [`ros1`]: ROS 1 messages rewritten as CDR from the message definitions their bag carries.
 //! - [`config`] (native only): the rig file (Oxford Spires `sensor.yaml` + an `ingest:` block).
 //! - [`tf`]: static TF tree lookups.
@@ -36,6 +36,8 @@ pub mod cdr;
 pub mod colmap;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod config;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod container;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod convert;
 #[cfg(not(target_arch = "wasm32"))]

@@ -20,8 +20,8 @@ use std::io::{BufReader, Read, Seek, SeekFrom};
 use std::path::Path;
 use std::sync::Arc;
 
-use super::bag::{BagError, Connection, MessageSource, RawMessage};
-use super::mcap::{MAX_RECORD, MIN_RECORD};
+use super::container::{BagError, Connection, MessageSource, RawMessage};
+use super::container::{MAX_RECORD, MIN_RECORD};
 use super::ros1;
 
 const OP_MESSAGE: u8 = 0x02;

@@ -18,7 +18,7 @@ use std::sync::Arc;
 use rusqlite::OpenFlags;
 use serde::Deserialize;
 
-use super::bag::{BagError, Connection, MessageSource, RawMessage, ZSTD_MAGIC};
+use super::container::{BagError, Connection, MessageSource, RawMessage, ZSTD_MAGIC};
 use super::mcap::McapSource;
 use super::ros;
 
@@ -168,21 +168,21 @@ struct Rosbag2Source {
 impl Rosbag2Source {
     fn open_next(&mut self) -> Option<Result<(), BagError>> {
         let path = self.files.pop_front()?;
-        let kind = match super::bag::detect(&path) {
+        let kind = match super::container::detect(&path) {
             Ok(k) => k,
             Err(e) => return Some(Err(e)),
         };
         Some(match kind {
-            super::bag::BagFormat::Mcap => McapSource::open(&path).map(|s| {
+            super::container::BagFormat::Mcap => McapSource::open(&path).map(|s| {
                 self.current = Some(Storage::Mcap(s));
             }),
-            super::bag::BagFormat::Rosbag2 => Db3Source::open(&path).map(|s| {
+            super::container::BagFormat::Rosbag2 => Db3Source::open(&path).map(|s| {
                 if let Some(n) = &s.note {
                     self.notes.push(n.clone());
                 }
                 self.current = Some(Storage::Sqlite(s));
             }),
-            super::bag::BagFormat::Ros1 => Err(format_err(
+            super::container::BagFormat::Ros1 => Err(format_err(
                 &path,
                 "storage file",
                 "a ROS 1 bag inside a rosbag2 folder",
