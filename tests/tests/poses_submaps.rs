@@ -340,6 +340,14 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
         "both submaps in the merge"
     );
     assert!(merged.scalar("log_std_combined").is_some());
+    // The same map as LAZ 1.4 for survey tools (issue 33): every point, its fields as extra bytes.
+    let laz = silvr_core::eval::scan::read_scan(&out.join("merged.laz"), None, None).unwrap();
+    assert_eq!(laz.cloud.len(), merged.len());
+    let laz_bytes = std::fs::read(out.join("merged.laz")).unwrap();
+    assert!(
+        laz_bytes.windows(16).any(|w| w == b"log_std_combined"),
+        "merged.laz names log_std_combined in its extra bytes"
+    );
     let kept: u64 = report["per_submap"]
         .as_array()
         .unwrap()
