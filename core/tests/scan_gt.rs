@@ -491,3 +491,25 @@ fn laspy_reads_our_laz_with_every_extra_dimension() {
         .zip(cloud.colors.as_ref().unwrap())
         .all(|(r, c)| *r == c[0] as u64 * 257));
 }
+
+/// A LAZ whose chunk table claims more chunks than its bytes can hold is refused before the `laz` crate
+/// reserves the table (laz 0.13 reserved the stated count: an abort on 2^32, found by the fuzz target).
+#[test]
+fn a_laz_with_an_absurd_chunk_count_is_an_error_not_an_abort() {
+    let tmp = tempfile::tempdir().unwrap();
+    let p = tmp.path().join("x.laz");
+    write_las(&p, &scene(), DMat4::IDENTITY);
+    let mut b = std::fs::read(&p).unwrap();
+    assert!(read_scan(&p, None, None).is_ok());
+    let data = u32::from_le_bytes(b[96..100].try_into().unwrap()) as usize;
+    let table = i64::from_le_bytes(b[data..data + 8].try_into().unwrap()) as usize;
+    b[table + 4..table + 8].copy_from_slice(&u32::MAX.to_le_bytes());
+    std::fs::write(&p, &b).unwrap();
+    let e = read_scan(&p, None, None).err().unwrap().to_string();
+    assert!(e.contains("x.laz") && e.contains("chunk table"), "{e}");
+    let e = silvr_core::eval::scan::read_scan_bytes(&b, &p, None, None)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("chunk table"), "{e}");
+}

@@ -222,6 +222,58 @@ impl Sink {
     }
 }
 
+/// Bounds a LAZ file's chunk count by its bytes before the `laz` crate reserves its chunk table (laz 0.13
+/// reserves the count the file states: a hostile 2^32 is 64 GiB and an abort, found by the `scan_file` fuzz
+/// target). Each chunk needs at least one byte of point data. Plain LAS files pass untouched.
+fn check_laz_chunk_table(r: &mut (impl Read + Seek)) -> Result<(), String> {
+    let len = r
+        .seek(std::io::SeekFrom::End(0))
+        .map_err(|e| e.to_string())?;
+    let mut at = |pos: u64, n: usize| -> Result<Option<Vec<u8>>, String> {
+        if pos.checked_add(n as u64).is_none_or(|end| end > len) {
+            return Ok(None);
+        }
+        r.seek(std::io::SeekFrom::Start(pos))
+            .map_err(|e| e.to_string())?;
+        let mut b = vec![0u8; n];
+        r.read_exact(&mut b).map_err(|e| e.to_string())?;
+        Ok(Some(b))
+    };
+    let Some(h) = at(0, 107)? else {
+        return Ok(());
+    };
+    // Point data format byte: LASzip sets bit 7 (or 6) on compressed files.
+    if h[104] & 0xc0 == 0 {
+        return Ok(());
+    }
+    let data = u32::from_le_bytes([h[96], h[97], h[98], h[99]]) as u64;
+    let Some(b) = at(data, 8)? else {
+        return Ok(());
+    };
+    let mut table = i64::from_le_bytes(b.try_into().unwrap_or([0; 8]));
+    if table == -1 {
+        // Written by a streaming compressor: the offset is in the file's last 8 bytes.
+        let Some(b) = at(len.saturating_sub(8), 8)? else {
+            return Ok(());
+        };
+        table = i64::from_le_bytes(b.try_into().unwrap_or([0; 8]));
+    }
+    let Ok(table) = u64::try_from(table) else {
+        return Ok(());
+    };
+    let Some(b) = at(table, 8)? else {
+        return Ok(());
+    };
+    let chunks = u32::from_le_bytes([b[4], b[5], b[6], b[7]]) as u64;
+    let room = table.saturating_sub(data + 8);
+    if chunks > room {
+        return Err(format!(
+            "the LAZ chunk table claims {chunks} chunks in {room} bytes of point data (corrupt file)"
+        ));
+    }
+    Ok(())
+}
+
 /// What was read: the cloud (in the map's frame when a transform was given) and notes for the report.
 pub struct Scan {
     pub cloud: PointCloud,
@@ -314,6 +366,14 @@ fn read_with(
             sink.finish()
         }
         ScanFormat::Las => {
+            match input {
+                Input::File(p) => {
+                    let mut f = std::fs::File::open(p).map_err(|e| err(p, e.to_string()))?;
+                    check_laz_chunk_table(&mut f)
+                }
+                Input::Bytes(b, _) => check_laz_chunk_table(&mut std::io::Cursor::new(b)),
+            }
+            .map_err(|e| err(path, e))?;
             let mut r = match input {
                 Input::File(p) => las::Reader::from_path(p),
                 Input::Bytes(b, _) => las::Reader::new(std::io::Cursor::new(b.to_vec())),
