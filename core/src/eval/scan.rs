@@ -222,10 +222,11 @@ impl Sink {
     }
 }
 
-/// Bounds a LAZ file's chunk count by its bytes before the `laz` crate reserves its chunk table (laz 0.13
-/// reserves the count the file states: a hostile 2^32 is 64 GiB and an abort, found by the `scan_file` fuzz
-/// target). Each chunk needs at least one byte of point data. Plain LAS files pass untouched.
-fn check_laz_chunk_table(r: &mut (impl Read + Seek)) -> Result<(), String> {
+/// Checks what the `las`/`laz` crates would trust in a LAS/LAZ header, before they read it (both found by
+/// the `scan_file` fuzz target): the point-record count times the record length must not overflow (las
+/// 0.11 multiplies unchecked), and a LAZ file's chunk count must fit its point data, one byte a chunk at
+/// least (laz 0.13 reserves the stated count: 2^32 chunks is 64 GiB and an abort).
+fn check_las_header(r: &mut (impl Read + Seek)) -> Result<(), String> {
     let len = r
         .seek(std::io::SeekFrom::End(0))
         .map_err(|e| e.to_string())?;
@@ -239,14 +240,34 @@ fn check_laz_chunk_table(r: &mut (impl Read + Seek)) -> Result<(), String> {
         r.read_exact(&mut b).map_err(|e| e.to_string())?;
         Ok(Some(b))
     };
-    let Some(h) = at(0, 107)? else {
+    let Some(h) = at(0, 111)? else {
         return Ok(());
     };
+    // The las crate computes the end of the point records as offset + count × record length without
+    // overflow checks (a panic in a build with them): refuse counts whose product overflows.
+    let data_offset = u32::from_le_bytes([h[96], h[97], h[98], h[99]]) as u64;
+    let record_len = u16::from_le_bytes([h[105], h[106]]) as u64;
+    let header_size = u16::from_le_bytes([h[94], h[95]]) as u64;
+    let mut count = u32::from_le_bytes([h[107], h[108], h[109], h[110]]) as u64;
+    if header_size >= 255 {
+        if let Some(b) = at(247, 8)? {
+            count = count.max(u64::from_le_bytes(b.try_into().unwrap_or([0; 8])));
+        }
+    }
+    if count
+        .checked_mul(record_len)
+        .and_then(|b| b.checked_add(data_offset))
+        .is_none()
+    {
+        return Err(format!(
+            "the header's {count} point records of {record_len} bytes overflow (corrupt file)"
+        ));
+    }
     // Point data format byte: LASzip sets bit 7 (or 6) on compressed files.
     if h[104] & 0xc0 == 0 {
         return Ok(());
     }
-    let data = u32::from_le_bytes([h[96], h[97], h[98], h[99]]) as u64;
+    let data = data_offset;
     let Some(b) = at(data, 8)? else {
         return Ok(());
     };
@@ -369,9 +390,9 @@ fn read_with(
             match input {
                 Input::File(p) => {
                     let mut f = std::fs::File::open(p).map_err(|e| err(p, e.to_string()))?;
-                    check_laz_chunk_table(&mut f)
+                    check_las_header(&mut f)
                 }
-                Input::Bytes(b, _) => check_laz_chunk_table(&mut std::io::Cursor::new(b)),
+                Input::Bytes(b, _) => check_las_header(&mut std::io::Cursor::new(b)),
             }
             .map_err(|e| err(path, e))?;
             let mut r = match input {
