@@ -247,9 +247,9 @@ fn check_las_header(r: &mut (impl Read + Seek)) -> Result<(), String> {
     // overflow checks (a panic in a build with them): refuse counts whose product overflows.
     let data_offset = u32::from_le_bytes([h[96], h[97], h[98], h[99]]) as u64;
     let record_len = u16::from_le_bytes([h[105], h[106]]) as u64;
-    let header_size = u16::from_le_bytes([h[94], h[95]]) as u64;
     let mut count = u32::from_le_bytes([h[107], h[108], h[109], h[110]]) as u64;
-    if header_size >= 255 {
+    // LAS 1.4 headers (by version, whatever their stated size) carry a 64-bit count too.
+    if h[24] > 1 || h[25] >= 4 {
         if let Some(b) = at(247, 8)? {
             count = count.max(u64::from_le_bytes(b.try_into().unwrap_or([0; 8])));
         }
@@ -403,9 +403,11 @@ fn read_with(
             let total = r.header().number_of_points();
             let mut sink = Sink::new(voxel, total, threshold);
             let mut batch = las::PointDataBuilder::new().for_header(r.header()).build();
+            // Batches of at most 16 MiB: the record length comes from the file (up to 64 KiB a point).
+            let per_batch = ((16u64 << 20) / batch.record_len().max(1) as u64).clamp(1, 1 << 16);
             loop {
                 let n = r
-                    .fill_points(1 << 16, &mut batch)
+                    .fill_points(per_batch, &mut batch)
                     .map_err(|e| err(path, e.to_string()))?;
                 if n == 0 {
                     break;
