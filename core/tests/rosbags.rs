@@ -9,7 +9,6 @@ mod common;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use silvr_core::ingest::bag::{summarize, BagError, BagFormat, BagReader, Skip};
 use silvr_core::ingest::config::RigConfig;
@@ -29,41 +28,16 @@ fn formats_dir(rel: &str) -> Option<PathBuf> {
     None
 }
 
-/// The Python with `rosbags` (scripts/setup.sh's virtual environment, named by `SILVR_PYTHON`), or a
-/// skip; `SILVR_REQUIRE_PEERS=1` (scripts/test.sh) makes its absence a failure.
+/// The Python with `rosbags` (scripts/setup.sh's virtual environment), or a skip.
 fn rosbags_python() -> Option<PathBuf> {
-    let py = std::env::var_os("SILVR_PYTHON")
-        .map(PathBuf::from)
-        .or_else(|| {
-            let home = std::env::var_os("HOME")?;
-            Some(PathBuf::from(home).join(".cache/silvr-venv/bin/python"))
-        })?;
-    let ok = Command::new(&py)
-        .args(["-c", "import rosbags, mcap"])
-        .status()
-        .is_ok_and(|s| s.success());
-    if ok {
-        return Some(py);
-    }
-    common::skip(
-        "SILVR_REQUIRE_PEERS",
-        &format!(
-            "{} cannot import rosbags and mcap (scripts/setup.sh installs them)",
-            py.display()
-        ),
-    );
-    None
+    common::peer_python("rosbags, mcap")
 }
 
 fn peer(py: &Path, args: &[&str]) -> serde_json::Value {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/rosbags_peer.py");
-    let out = Command::new(py).arg(script).args(args).output().unwrap();
-    assert!(
-        out.status.success(),
-        "rosbags_peer.py {args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_slice(&out.stdout).unwrap()
+    let mut all = vec![script.as_os_str()];
+    all.extend(args.iter().map(std::ffi::OsStr::new));
+    common::python_json(py, &all)
 }
 
 /// topic → (type, messages) as `silvr ingest --info` reports it.

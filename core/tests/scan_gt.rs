@@ -3,6 +3,8 @@
 //! own pose, LAS and LAZ (quantised at 1e-7 m) — and through `--gt-transform`; the shared third-party E57
 //! and LAS/LAZ files read.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
 use glam::{DMat4, DQuat, DVec3};
@@ -288,10 +290,7 @@ fn shared(rel: &str) -> Option<PathBuf> {
     if p.exists() {
         return Some(p);
     }
-    if std::env::var("SILVR_REQUIRE_DATA").as_deref() == Ok("1") {
-        panic!("{} is absent and SILVR_REQUIRE_DATA=1", p.display());
-    }
-    eprintln!("SKIP: shared scan files: {} is absent", p.display());
+    common::skip("SILVR_REQUIRE_DATA", &format!("{} is absent", p.display()));
     None
 }
 
@@ -318,31 +317,9 @@ fn shared_e57_and_las_files_read() {
     }
 }
 
-/// The Python with pye57 and laspy (scripts/setup.sh's virtual environment, `SILVR_PYTHON`), or a skip
-/// (a failure under `SILVR_REQUIRE_PEERS=1`).
+/// The Python with pye57 and laspy (scripts/setup.sh's virtual environment), or a skip.
 fn scan_python() -> Option<PathBuf> {
-    let py = std::env::var_os("SILVR_PYTHON")
-        .map(PathBuf::from)
-        .or_else(|| {
-            Some(PathBuf::from(std::env::var_os("HOME")?).join(".cache/silvr-venv/bin/python"))
-        })?;
-    let ok = std::process::Command::new(&py)
-        .args(["-c", "import pye57, laspy, lazrs"])
-        .status()
-        .is_ok_and(|s| s.success());
-    if ok {
-        return Some(py);
-    }
-    assert!(
-        std::env::var("SILVR_REQUIRE_PEERS").as_deref() != Ok("1"),
-        "{} cannot import pye57, laspy and lazrs, and SILVR_REQUIRE_PEERS=1",
-        py.display()
-    );
-    eprintln!(
-        "SKIP: scan peers: {} lacks pye57/laspy (scripts/setup.sh installs them)",
-        py.display()
-    );
-    None
+    common::peer_python("pye57, laspy, lazrs")
 }
 
 #[test]
@@ -362,17 +339,9 @@ fn shared_e57_and_las_files_read_as_pye57_and_laspy_read_them() {
         .collect();
     files.sort();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/scan_peer.py");
-    let out = std::process::Command::new(&py)
-        .arg(script)
-        .args(&files)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let peer: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let mut args = vec![script.as_os_str()];
+    args.extend(files.iter().map(|f| f.as_os_str()));
+    let peer = common::python_json(&py, &args);
     for f in &files {
         let theirs = &peer[f.to_str().unwrap()];
         let ours = read_scan(f, None, None).unwrap_or_else(|e| panic!("{e}"));
@@ -448,17 +417,7 @@ fn laspy_reads_our_laz_with_every_extra_dimension() {
                 d['red'] = [int(v) for v in f.red]\n\
                 d['version'] = str(f.header.version)\n\
                 print(json.dumps(d))";
-    let out = std::process::Command::new(&py)
-        .args(["-c", code])
-        .arg(&laz)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let d: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let d = common::python_json(&py, &["-c".as_ref(), code.as_ref(), laz.as_os_str()]);
     assert_eq!(d["version"], "1.4");
     for (name, values) in &cloud.scalars {
         let got = d[name]

@@ -147,6 +147,18 @@ pub fn detect(path: &Path) -> Result<BagFormat, BagError> {
     }
 }
 
+/// Opens a bag file: its name for errors, the file, and its length (which bounds record sizes).
+pub(crate) fn open_file(path: &Path) -> Result<(String, std::fs::File, u64), BagError> {
+    let file = path.display().to_string();
+    let io = |source| BagError::Io {
+        file: file.clone(),
+        source,
+    };
+    let f = std::fs::File::open(path).map_err(io)?;
+    let len = f.metadata().map_err(io)?.len();
+    Ok((file, f, len))
+}
+
 /// Bytes a bag occupies (a folder: its files), for throughput reports.
 pub fn bag_bytes(path: &Path) -> Result<u64, BagError> {
     let io = |source| BagError::Io {

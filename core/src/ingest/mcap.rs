@@ -5,7 +5,6 @@
 //! short) read the same way. Chunks may be uncompressed, zstd or lz4; chunk CRCs are checked.
 
 use std::collections::HashMap;
-use std::fs::File;
 use std::io::{BufReader, Read};
 use std::panic::AssertUnwindSafe;
 use std::path::Path;
@@ -14,7 +13,9 @@ use std::sync::Arc;
 use mcap::sans_io::LinearReaderOptions;
 use mcap::McapError;
 
-use super::container::{BagError, Connection, MessageSource, RawMessage, MAX_RECORD, MIN_RECORD};
+use super::container::{
+    open_file, BagError, Connection, MessageSource, RawMessage, MAX_RECORD, MIN_RECORD,
+};
 
 /// A short classification of an MCAP error for people reading logs.
 fn classify(e: &McapError) -> &'static str {
@@ -55,13 +56,7 @@ pub(crate) struct McapSource {
 
 impl McapSource {
     pub(crate) fn open(path: &Path) -> Result<Self, BagError> {
-        let file = path.display().to_string();
-        let io = |source| BagError::Io {
-            file: file.clone(),
-            source,
-        };
-        let f = File::open(path).map_err(io)?;
-        let len = f.metadata().map_err(io)?.len();
+        let (file, f, len) = open_file(path)?;
         Ok(Self::from_reader(file, BufReader::new(f), len))
     }
 

@@ -15,12 +15,11 @@
 //! length is checked against the bytes left before anything is allocated.
 
 use std::collections::HashMap;
-use std::fs::File;
 use std::io::{BufReader, Read, Seek, SeekFrom};
 use std::path::Path;
 use std::sync::Arc;
 
-use super::container::{BagError, Connection, MessageSource, RawMessage};
+use super::container::{open_file, BagError, Connection, MessageSource, RawMessage};
 use super::container::{MAX_RECORD, MIN_RECORD};
 use super::ros1;
 
@@ -162,13 +161,7 @@ pub(crate) struct Ros1Source {
 
 impl Ros1Source {
     pub(crate) fn open(path: &Path) -> Result<Self, BagError> {
-        let file = path.display().to_string();
-        let io = |source| BagError::Io {
-            file: file.clone(),
-            source,
-        };
-        let f = File::open(path).map_err(io)?;
-        let len = f.metadata().map_err(io)?.len();
+        let (file, f, len) = open_file(path)?;
         Self::from_reader(file, Box::new(f), len)
     }
 

@@ -88,3 +88,41 @@ pub fn setup(seed: u64, r: usize) -> (ModelConfig, Params, Batch) {
     };
     (cfg, params, batch)
 }
+
+/// The Python of scripts/setup.sh's virtual environment (`SILVR_PYTHON`, else ~/.cache/silvr-venv) when it
+/// can import `modules` (comma-separated, as in a Python `import`), or a skip that fails under
+/// `SILVR_REQUIRE_PEERS=1` (scripts/test.sh).
+pub fn peer_python(modules: &str) -> Option<std::path::PathBuf> {
+    let py = std::env::var_os("SILVR_PYTHON")
+        .map(std::path::PathBuf::from)
+        .or_else(|| {
+            let home = std::env::var_os("HOME")?;
+            Some(std::path::PathBuf::from(home).join(".cache/silvr-venv/bin/python"))
+        })?;
+    let ok = std::process::Command::new(&py)
+        .args(["-c", &format!("import {modules}")])
+        .status()
+        .is_ok_and(|s| s.success());
+    if ok {
+        return Some(py);
+    }
+    skip(
+        "SILVR_REQUIRE_PEERS",
+        &format!(
+            "{} cannot import {modules} (scripts/setup.sh installs them)",
+            py.display()
+        ),
+    );
+    None
+}
+
+/// Runs `python args...` and parses its stdout as JSON, failing with its stderr.
+pub fn python_json(py: &std::path::Path, args: &[&std::ffi::OsStr]) -> serde_json::Value {
+    let out = std::process::Command::new(py).args(args).output().unwrap();
+    assert!(
+        out.status.success(),
+        "python {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
