@@ -472,3 +472,35 @@ fn a_laz_with_an_absurd_chunk_count_is_an_error_not_an_abort() {
         .to_string();
     assert!(e.contains("chunk table"), "{e}");
 }
+
+/// A layered LAZ chunk (point formats 6+) whose layer sizes run past the file is refused before the `laz`
+/// crate sizes its buffers from them (laz 0.13 resized to the stated size: a 1 KB file reserved 4 GB).
+#[test]
+fn a_laz_layer_larger_than_the_file_is_an_error_not_a_4gb_allocation() {
+    let tmp = tempfile::tempdir().unwrap();
+    let p = tmp.path().join("x.laz");
+    // The product's own writer: LAS 1.4 point format 7, layered chunks.
+    silvr_core::lasfile::write_las(&p, &scene()).unwrap();
+    let mut b = std::fs::read(&p).unwrap();
+    assert!(read_scan(&p, None, None).is_ok());
+    // Our LAZ is point format 7: the first chunk holds the first point raw (one record), a point count,
+    // then one u32 size per layer; the first is the x/y layer's.
+    let data = u32::from_le_bytes(b[96..100].try_into().unwrap()) as usize;
+    let record = u16::from_le_bytes(b[105..107].try_into().unwrap()) as usize;
+    let xy = data + 8 + record + 4;
+    b[xy..xy + 4].copy_from_slice(&0xFFFF_FF00u32.to_le_bytes());
+    std::fs::write(&p, &b).unwrap();
+    let e = read_scan(&p, None, None).err().unwrap().to_string();
+    assert!(e.contains("x.laz") && e.contains("bytes of layers"), "{e}");
+    // The fuzz target's find, a 1,108-byte file.
+    let known = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../fuzz/seeds/scan_file/laz14-layer-size-4gb.laz"
+    );
+    let kb = std::fs::read(known).unwrap();
+    let e = silvr_core::eval::scan::read_scan_bytes(&kb, Path::new(known), None, None)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("bytes of layers"), "{e}");
+}

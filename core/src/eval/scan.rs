@@ -271,26 +271,105 @@ fn check_las_header(r: &mut (impl Read + Seek)) -> Result<(), String> {
     let Some(b) = at(data, 8)? else {
         return Ok(());
     };
+    // As laz reads it: an offset not past the point data's start (-1 from a streaming compressor) means
+    // the offset is in the file's last 8 bytes; none there either means no table (chunks read in turn).
     let mut table = i64::from_le_bytes(b.try_into().unwrap_or([0; 8]));
-    if table == -1 {
-        // Written by a streaming compressor: the offset is in the file's last 8 bytes.
-        let Some(b) = at(len.saturating_sub(8), 8)? else {
-            return Ok(());
-        };
-        table = i64::from_le_bytes(b.try_into().unwrap_or([0; 8]));
+    if table <= data as i64 {
+        if let Some(b) = at(len.saturating_sub(8), 8)? {
+            table = i64::from_le_bytes(b.try_into().unwrap_or([0; 8]));
+        }
     }
-    let Ok(table) = u64::try_from(table) else {
-        return Ok(());
-    };
-    let Some(b) = at(table, 8)? else {
-        return Ok(());
-    };
-    let chunks = u32::from_le_bytes([b[4], b[5], b[6], b[7]]) as u64;
-    let room = table.saturating_sub(data + 8);
-    if chunks > room {
-        return Err(format!(
-            "the LAZ chunk table claims {chunks} chunks in {room} bytes of point data (corrupt file)"
-        ));
+    let table = u64::try_from(table).ok().filter(|&t| t > data);
+    if let Some(b) = match table {
+        Some(t) => at(t, 8)?,
+        None => None,
+    } {
+        let chunks = u32::from_le_bytes([b[4], b[5], b[6], b[7]]) as u64;
+        let room = table.unwrap_or(0).saturating_sub(data + 8);
+        if chunks > room {
+            return Err(format!(
+                "the LAZ chunk table claims {chunks} chunks in {room} bytes of point data (corrupt file)"
+            ));
+        }
+    }
+    // The point data ends at the chunk table, else at the first extended VLR (LAS 1.4), else the file's end.
+    let mut end = table.unwrap_or(len).min(len);
+    if table.is_none() && (h[24] > 1 || h[25] >= 4) {
+        if let Some(b) = at(235, 8)? {
+            let evlr = u64::from_le_bytes(b.try_into().unwrap_or([0; 8]));
+            if evlr > data {
+                end = end.min(evlr);
+            }
+        }
+    }
+    let header_size = u16::from_le_bytes([h[94], h[95]]) as u64;
+    let n_vlrs = u32::from_le_bytes([h[100], h[101], h[102], h[103]]);
+    check_laz_layers(&mut at, header_size, n_vlrs, data, end)
+}
+
+/// Layered (LAS 1.4, point formats 6–10) LAZ chunks state each layer's byte count, and laz 0.13 sizes its
+/// buffer from it before reading (a 1 KB file reserved 4 GB; found by the `scan_file` fuzz target). Walks
+/// the chunks (each one: the first point raw, a point count, the layer sizes, the layers) and refuses any
+/// whose layers would run past the point data.
+fn check_laz_layers(
+    at: &mut impl FnMut(u64, usize) -> Result<Option<Vec<u8>>, String>,
+    header_size: u64,
+    n_vlrs: u32,
+    data: u64,
+    end: u64,
+) -> Result<(), String> {
+    use laz::LazItemType as T;
+    // Find the LASzip VLR (user "laszip encoded", record 22204) among the header's VLRs.
+    let mut pos = header_size;
+    let mut items = None;
+    for _ in 0..n_vlrs.min(1 << 16) {
+        let Some(v) = at(pos, 54)? else { break };
+        let body_len = u16::from_le_bytes([v[20], v[21]]) as usize;
+        let record = u16::from_le_bytes([v[18], v[19]]);
+        if v[2..16].starts_with(b"laszip encoded") && record == 22204 {
+            if let Some(body) = at(pos + 54, body_len)? {
+                items = laz::LazVlr::from_buffer(&body)
+                    .ok()
+                    .map(|vlr| vlr.items().clone());
+            }
+            break;
+        }
+        pos += 54 + body_len as u64;
+    }
+    let Some(items) = items else { return Ok(()) };
+    let mut first_point = 0u64;
+    let mut layers = 0u64;
+    for item in &items {
+        first_point += item.size() as u64;
+        layers += match item.item_type() {
+            T::Point14 => 9,
+            T::RGB14 | T::WavePacket14 => 1,
+            T::RGBNIR14 => 2,
+            T::Byte14(n) => n as u64,
+            // Point-wise (pre-1.4) items have no layers.
+            _ => return Ok(()),
+        };
+    }
+    let head = first_point + 4 + 4 * layers;
+    let mut chunk_at = data + 8;
+    let mut index = 0u64;
+    while chunk_at < end {
+        let Some(b) = at(chunk_at + first_point + 4, 4 * layers as usize)? else {
+            break;
+        };
+        let sizes: u64 = b
+            .chunks_exact(4)
+            .map(|s| u32::from_le_bytes([s[0], s[1], s[2], s[3]]) as u64)
+            .sum();
+        let left = end.saturating_sub(chunk_at + head);
+        if sizes > left {
+            return Err(format!(
+                "LAZ chunk {index} at byte {chunk_at} states {sizes} bytes of layers, but only {left} \
+                 bytes of point data follow (corrupt file)"
+            ));
+        }
+        chunk_at += head + sizes;
+        index += 1;
     }
     Ok(())
 }
