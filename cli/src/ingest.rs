@@ -364,7 +364,9 @@ pub struct ImportCmd {
     /// `spires` (an Oxford Spires sequence: sensor.yaml, raw/camN/, processed/vilens-slam/), `colmap` (a
     /// text model folder; photos from --images) or `kitti` (a KITTI odometry sequence folder
     /// `sequences/NN`: image_2/, image_3/, velodyne/, calib.txt, times.txt; ground truth from
-    /// `poses/NN.txt` two levels up or `poses.txt` inside, or --poses).
+    /// `poses/NN.txt` two levels up or `poses.txt` inside, or --poses; or a KITTI raw drive folder
+    /// `DATE/DATE_drive_NNNN_sync`: image_02/, image_03/, velodyne_points/, oxts/, with calib_*.txt in
+    /// DATE/; poses from the OXTS).
     pub format: String,
     /// The source folder (dgp, spires, kitti) or transforms.json (nerfstudio).
     pub source: PathBuf,
@@ -379,9 +381,9 @@ pub struct ImportCmd {
     pub out: PathBuf,
     #[arg(long)]
     pub overwrite: bool,
-    /// kitti: the trajectory to use instead of the ground truth beside the sequence (KITTI format:
-    /// T_world_cam0 of frame i on line i), or `lidar` for lidar odometry over velodyne/ (what a sequence
-    /// without ground truth gets anyway, with a notice).
+    /// kitti: the trajectory to use instead of the ground truth beside the sequence or a drive's OXTS
+    /// (KITTI format: T_world_cam0 of frame i on line i), or `lidar` for lidar odometry over the sweeps
+    /// (what a sequence without either gets anyway, with a notice).
     #[arg(long)]
     pub poses: Option<PathBuf>,
     /// kitti: only frames FIRST..=LAST (KITTI frame numbers), e.g. `--frames 0:99`.
@@ -561,9 +563,10 @@ pub fn import(c: ImportCmd, open_gpu: impl FnOnce() -> Result<Gpu>) -> Result<()
                 format!("importing {} into {}", c.source.display(), c.out.display())
             })?;
             eprintln!(
-                "[import] done in {:.1} s: {} keyframes, {} images, poses from {}; no deskew (KITTI \
-                 sweeps are motion-compensated already)",
+                "[import] done in {:.1} s: KITTI {:?} layout, {} keyframes, {} images, poses from {}; no \
+                 deskew (the sweeps carry no point times; see the manifest's notes)",
                 start.elapsed().as_secs_f64(),
+                s.layout,
                 s.keyframes,
                 s.images,
                 s.poses

@@ -71,7 +71,8 @@ enum Command {
     Ingest(ingest::IngestCmd),
     /// Another dataset layout → a dataset: `dgp` (a DGP scene: lidar .npz sweeps, pinhole cameras),
     /// `nerfstudio` (a transforms.json with optional depth / normal / sky images), `spires`, `colmap` or
-    /// `kitti` (a KITTI odometry sequence: stereo colour, velodyne, calib.txt, ground-truth poses).
+    /// `kitti` (a KITTI odometry sequence or raw drive: stereo colour, velodyne, calibration, ground-truth
+    /// poses or OXTS).
     Import(ingest::ImportCmd),
     /// A dataset → another layout (`colmap`: a text model of the cameras and posed images).
     Export(ingest::ExportCmd),

@@ -389,3 +389,227 @@ fn a_kitti_sequence_as_a_bag_of_bare_clouds_ingests_like_the_import() {
         "{differing} of {pixels} lidar pixels differ"
     );
 }
+
+/// Writes sequence `seq` (odometry layout) as a KITTI raw drive, `DATE/DATE_drive_0067_sync` (sequence 03
+/// comes from drive 0067 of 2011-09-26): the images and sweeps under 10-digit names, `calib_cam_to_cam.txt`
+/// with P_rect_02/03 = P2/P3 and R_rect_00 = I, `calib_velo_to_cam.txt` = Tr, the released drives'
+/// `calib_imu_to_velo.txt`, `image_02/timestamps.txt` from times.txt, and one OXTS record per frame made from
+/// the ground truth by the inverse of the devkit's projection, placed near Karlsruhe with the IMU level at
+/// frame 0. Returns the drive folder.
+fn write_raw_drive(seq: &Path, date_dir: &Path) -> std::path::PathBuf {
+    use glam::{DQuat, DVec3};
+    use silvr_core::geometry::Se3;
+    use silvr_core::ingest::kitti::{oxts_from_pose, parse_calib};
+    use silvr_core::ingest::poses::{parse_kitti, KittiTimes};
+
+    let drive = date_dir.join("2011_09_26_drive_0067_sync");
+    let calib = parse_calib(
+        &std::fs::read_to_string(seq.join("calib.txt")).unwrap(),
+        "calib.txt",
+    )
+    .unwrap();
+    let nums = |k: &str| {
+        calib
+            .numbers(k)
+            .unwrap()
+            .iter()
+            .map(|v| format!("{v:e}"))
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    std::fs::create_dir_all(&drive).unwrap();
+    std::fs::write(
+        date_dir.join("calib_cam_to_cam.txt"),
+        format!(
+            "calib_time: 09-Jan-2012 13:57:47\ncorner_dist: 9.950000e-02\nR_rect_00: 1 0 0 0 1 0 0 0 1\n\
+             P_rect_02: {}\nP_rect_03: {}\n",
+            nums("P2"),
+            nums("P3")
+        ),
+    )
+    .unwrap();
+    let tr = calib.rigid("Tr").unwrap();
+    let m = glam::DMat3::from_quat(tr.rot);
+    let row = |m: glam::DMat3| {
+        (0..3)
+            .flat_map(|r| (0..3).map(move |c| m.col(c)[r]))
+            .map(|v| format!("{v:e}"))
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    std::fs::write(
+        date_dir.join("calib_velo_to_cam.txt"),
+        format!(
+            "calib_time: 15-Mar-2012 11:37:16\nR: {}\nT: {:e} {:e} {:e}\ndelta_f: 0 0\ndelta_c: 0 0\n",
+            row(m),
+            tr.trans.x,
+            tr.trans.y,
+            tr.trans.z
+        ),
+    )
+    .unwrap();
+    // The released drives' IMU → velodyne (2011_09_26), as a unit quaternion's exact rotation.
+    let t_velo_imu = Se3::new(
+        DQuat::from_xyzw(0.0035, -0.0030, 0.0006, 1.0).normalize(),
+        DVec3::new(-0.8086759, 0.3195559, -0.7997231),
+    );
+    std::fs::write(
+        date_dir.join("calib_imu_to_velo.txt"),
+        format!(
+            "calib_time: 25-May-2012 16:47:16\nR: {}\nT: {:e} {:e} {:e}\n",
+            row(glam::DMat3::from_quat(t_velo_imu.rot)),
+            t_velo_imu.trans.x,
+            t_velo_imu.trans.y,
+            t_velo_imu.trans.z
+        ),
+    )
+    .unwrap();
+    let times: Vec<f64> = std::fs::read_to_string(seq.join("times.txt"))
+        .unwrap()
+        .lines()
+        .map(|l| l.trim().parse().unwrap())
+        .collect();
+    let gt = parse_kitti(
+        &std::fs::read_to_string(seq.join("poses.txt")).unwrap(),
+        "poses.txt",
+        KittiTimes::Period(1.0),
+    )
+    .unwrap();
+    let t_cam0_imu = tr * t_velo_imu;
+    // Level IMU at frame 0, heading 30° north of east, at 49° N 8.4° E, 115 m.
+    let (lat0, lon0) = (49.0_f64, 8.4_f64);
+    let (er, scale) = (6_378_137.0, lat0.to_radians().cos());
+    let origin = DVec3::new(
+        scale * er * lon0.to_radians(),
+        scale * er * ((90.0 + lat0) * std::f64::consts::PI / 360.0).tan().ln(),
+        115.0,
+    );
+    let g = Se3::new(DQuat::from_rotation_z(30f64.to_radians()), origin)
+        * (gt.poses()[0] * t_cam0_imu).inverse();
+    let mut stamps = String::new();
+    for sub in [
+        "image_02/data",
+        "image_03/data",
+        "velodyne_points/data",
+        "oxts/data",
+    ] {
+        std::fs::create_dir_all(drive.join(sub)).unwrap();
+    }
+    // The snippet keeps the sequence's times.txt whole; its first frames are the ones with images.
+    let frames = std::fs::read_dir(seq.join("image_2")).unwrap().count();
+    for (f, t) in times.iter().enumerate().take(frames) {
+        let name = format!("{f:010}");
+        for (from, to) in [("image_2", "image_02"), ("image_3", "image_03")] {
+            std::fs::copy(
+                seq.join(format!("{from}/{f:06}.png")),
+                drive.join(format!("{to}/data/{name}.png")),
+            )
+            .unwrap();
+        }
+        std::fs::copy(
+            seq.join(format!("velodyne/{f:06}.bin")),
+            drive.join(format!("velodyne_points/data/{name}.bin")),
+        )
+        .unwrap();
+        let o = oxts_from_pose(&(g * gt.poses()[f] * t_cam0_imu), lat0);
+        // The 30 numbers of a record: position and attitude, then velocities etc. (unused) as zeros.
+        let mut rec = format!(
+            "{} {} {} {} {} {}",
+            o.lat, o.lon, o.alt, o.roll, o.pitch, o.yaw
+        );
+        rec.push_str(&" 0".repeat(19));
+        rec.push_str(" 4 10 4 4 0\n");
+        std::fs::write(drive.join(format!("oxts/data/{name}.txt")), rec).unwrap();
+        stamps.push_str(&format!("2011-09-26 13:02:{:012.9}\n", 20.0 + t));
+    }
+    std::fs::write(drive.join("image_02/timestamps.txt"), stamps).unwrap();
+    drive
+}
+
+/// The raw release's layout (a drive folder, its OXTS for poses) imports to the same dataset as the
+/// odometry layout of the same frames: images, lidar and depth bit-equal, poses equal to a micrometre.
+#[test]
+fn a_kitti_raw_drive_imports_like_the_odometry_sequence_made_from_it() {
+    let Some(seq) = silvr_tests::shared_data("real/kitti_odometry/sequences/03") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let date_dir = tmp.path().join("2011_09_26");
+    let drive = write_raw_drive(&seq, &date_dir);
+    let (raw, odo) = (tmp.path().join("raw"), tmp.path().join("odo"));
+    let out = import(&drive, &raw, &["--downscale", "4"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    let s: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(
+        (&s["layout"], &s["keyframes"], &s["images"]),
+        (&"raw".into(), &10.into(), &20.into()),
+        "{s}"
+    );
+    assert!(s["poses"].as_str().unwrap().contains("OXTS"), "{s}");
+    assert!(import(&seq, &odo, &["--downscale", "4"]).status.success());
+    for k in 0..10 {
+        for (a, b) in [("image_02", "image_2"), ("image_03", "image_3")] {
+            for kind in ["images", "lidar_depth", "lidar_normals", "sky_mask"] {
+                let f = |root: &Path, cam: &str| {
+                    std::fs::read(root.join(format!("{kind}/{cam}/{k:05}.png"))).unwrap()
+                };
+                assert!(f(&raw, a) == f(&odo, b), "{kind}/{a}/{k:05}.png differs");
+            }
+        }
+        let ply = |root: &Path| std::fs::read(root.join(format!("lidar/raw/{k:05}.ply"))).unwrap();
+        assert!(ply(&raw) == ply(&odo), "sweep {k} differs");
+    }
+    for file in ["base_tum.txt", "lidar_tum.txt"] {
+        let (a, b) = (
+            read_tum(&raw.join("poses").join(file)).unwrap(),
+            read_tum(&odo.join("poses").join(file)).unwrap(),
+        );
+        for (k, (p, q)) in a.poses().iter().zip(b.poses()).enumerate() {
+            let (dt, dr) = (p.distance_to(q), p.rot.angle_between(q.rot));
+            assert!(dt < 1e-6 && dr < 1e-8, "{file} {k}: {dt} m, {dr} rad");
+        }
+        for (t, u) in a.stamps().iter().zip(b.stamps()) {
+            assert!((t - u).abs() < 1e-6, "{file}: stamps {t} vs {u}");
+        }
+    }
+
+    // `silvr odometry` reads the drive too, scored against its OXTS (in the lidar frame): the same
+    // sweeps and the same trajectory as the sequence gives (measured 2.7 cm ATE on 03, tests/odometry.rs).
+    let odo_out = Command::new(build_silvr())
+        .arg("odometry")
+        .arg(&drive)
+        .arg("--out")
+        .arg(tmp.path().join("drive.tum"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&odo_out.stderr);
+    assert!(odo_out.status.success(), "{err}");
+    let r: serde_json::Value = serde_json::from_slice(&odo_out.stdout).unwrap();
+    assert_eq!(
+        (&r["kind"], &r["sweeps"]),
+        (&"kitti".into(), &10.into()),
+        "{r}"
+    );
+    let ate = r["pose_errors"]["errors"]["ate_rmse_m"].as_f64().unwrap();
+    assert!(ate < 0.04, "{r}");
+
+    // The date folder is not a drive: the error names the drives inside it.
+    let out = import(&date_dir, &tmp.path().join("x"), &[]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success()
+            && err.contains("2011_09_26_drive_0067_sync")
+            && !err.contains("panicked"),
+        "{err}"
+    );
+    // A corrupt OXTS record is named, with its line; nothing is written.
+    std::fs::write(drive.join("oxts/data/0000000003.txt"), "49.0 8.4 nan\n").unwrap();
+    let out = import(&drive, &tmp.path().join("y"), &[]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("0000000003.txt") && !err.contains("panicked"),
+        "{err}"
+    );
+    assert!(!tmp.path().join("y").exists());
+}

@@ -427,9 +427,279 @@ pub fn parse_times(text: &str, name: &str) -> Result<Vec<f64>, KittiTextError> {
     Ok(stamps)
 }
 
+/// Parses a KITTI raw `timestamps.txt` (`2011-09-26 13:02:25.964389445`, one per line, UTC as the
+/// recorder wrote it) into seconds after the first line, so that the frame times keep their nanoseconds
+/// (seconds since 1970 as `f64` would keep ~0.2 µs). Stamps must increase, as in [`parse_times`].
+pub fn parse_datetimes(text: &str, name: &str) -> Result<Vec<f64>, KittiTextError> {
+    let mut first: Option<(i64, f64)> = None;
+    let mut stamps: Vec<f64> = Vec::new();
+    let mut last_line = 0;
+    for (n, line) in text_lines(text) {
+        let shown = || line.chars().take(40).collect::<String>();
+        let bad = || {
+            line_err(
+                name,
+                n,
+                format!(
+                    "'{}' is not a stamp like 2011-09-26 13:02:25.964389445",
+                    shown()
+                ),
+            )
+        };
+        let (date, time) = line.split_once(' ').ok_or_else(bad)?;
+        let d: Vec<&str> = date.split('-').collect();
+        let t: Vec<&str> = time.trim().split(':').collect();
+        let (&[y, mo, da], &[h, mi, se]) = (d.as_slice(), t.as_slice()) else {
+            return Err(bad());
+        };
+        let int = |s: &str, lo: i64, hi: i64| {
+            s.parse::<i64>()
+                .ok()
+                .filter(|v| (lo..=hi).contains(v) && s.bytes().all(|b| b.is_ascii_digit()))
+        };
+        let (Some(y), Some(mo), Some(da), Some(h), Some(mi)) = (
+            int(y, 1970, 9999),
+            int(mo, 1, 12),
+            int(da, 1, 31),
+            int(h, 0, 23),
+            int(mi, 0, 59),
+        ) else {
+            return Err(bad());
+        };
+        let sec = se
+            .parse::<f64>()
+            .ok()
+            .filter(|v| {
+                (0.0..61.0).contains(v) && se.bytes().all(|b| b.is_ascii_digit() || b == b'.')
+            })
+            .ok_or_else(bad)?;
+        // Whole seconds since 1970 by days from the civil date (proleptic Gregorian), the fraction apart.
+        let day = days_from_civil(y, mo, da);
+        let whole = day * 86_400 + h * 3_600 + mi * 60;
+        let (w0, s0) = *first.get_or_insert((whole, sec));
+        let stamp = (whole - w0) as f64 + (sec - s0);
+        if let Some(&prev) = stamps.last() {
+            if stamp <= prev {
+                return Err(line_err(
+                    name,
+                    n,
+                    format!(
+                        "stamp '{}' is not after line {last_line}'s; stamps must increase",
+                        shown()
+                    ),
+                ));
+            }
+        }
+        stamps.push(stamp);
+        last_line = n;
+    }
+    if stamps.is_empty() {
+        return Err(KittiTextError::Invalid {
+            file: name.to_string(),
+            reason: "no stamps (empty timestamps file)".into(),
+        });
+    }
+    Ok(stamps)
+}
+
+/// Days from 1970-01-01 to a civil date (Howard Hinnant's algorithm).
+fn days_from_civil(y: i64, m: i64, d: i64) -> i64 {
+    let y = if m <= 2 { y - 1 } else { y };
+    let era = y.div_euclid(400);
+    let yoe = y - era * 400;
+    let mp = (m + 9) % 12;
+    let doy = (153 * mp + 2) / 5 + d - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    era * 146_097 + doe - 719_468
+}
+
+/// One OXTS record of the raw release (`oxts/data/NNNNNNNNNN.txt`): the GPS/IMU's position and attitude
+/// (the first 6 of its 30 numbers; the velocities, accelerations and accuracies are not used).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Oxts {
+    /// Degrees, WGS84.
+    pub lat: f64,
+    pub lon: f64,
+    /// Metres above sea level.
+    pub alt: f64,
+    /// Radians: roll about x (forward), pitch about y (left), yaw (heading) about z (up), east = 0.
+    pub roll: f64,
+    pub pitch: f64,
+    pub yaw: f64,
+}
+
+/// Parses an OXTS record: one line of 30 numbers (the devkit's `dataformat.txt`), every one finite.
+pub fn parse_oxts(text: &str, name: &str) -> Result<Oxts, KittiTextError> {
+    let mut lines = text_lines(text);
+    let Some((n, line)) = lines.next() else {
+        return Err(KittiTextError::Invalid {
+            file: name.to_string(),
+            reason: "empty OXTS record".into(),
+        });
+    };
+    let v: Vec<f64> = line
+        .split_whitespace()
+        .enumerate()
+        .map(|(i, tok)| match tok.parse::<f64>() {
+            Ok(v) if v.is_finite() => Ok(v),
+            _ => Err(line_err(
+                name,
+                n,
+                format!(
+                    "value {} '{}' is not a finite number",
+                    i + 1,
+                    tok.chars().take(40).collect::<String>()
+                ),
+            )),
+        })
+        .collect::<Result<_, _>>()?;
+    if v.len() != 30 {
+        return Err(line_err(
+            name,
+            n,
+            format!("{} numbers; an OXTS record has 30", v.len()),
+        ));
+    }
+    if let Some((n, _)) = lines.next() {
+        return Err(line_err(name, n, "an OXTS record is one line"));
+    }
+    if v[0].abs() > 90.0 || v[1].abs() > 180.0 {
+        return Err(line_err(
+            name,
+            n,
+            format!("latitude {} / longitude {} out of range", v[0], v[1]),
+        ));
+    }
+    Ok(Oxts {
+        lat: v[0],
+        lon: v[1],
+        alt: v[2],
+        roll: v[3],
+        pitch: v[4],
+        yaw: v[5],
+    })
+}
+
+/// Earth radius of the devkit's Mercator projection (m).
+const OXTS_EARTH_RADIUS: f64 = 6_378_137.0;
+
+/// The GPS/IMU's pose of each record in a local metric frame (x east, y north, z up), as the KITTI devkit
+/// computes it (`convertOxtsToPose`): a Mercator projection scaled by the cosine of the first record's
+/// latitude, and the attitude `Rz(yaw) · Ry(pitch) · Rx(roll)`. Not normalised to the first record.
+pub fn oxts_poses(records: &[Oxts]) -> Vec<Se3> {
+    let Some(first) = records.first() else {
+        return Vec::new();
+    };
+    let scale = first.lat.to_radians().cos();
+    records
+        .iter()
+        .map(|o| {
+            let x = scale * OXTS_EARTH_RADIUS * o.lon.to_radians();
+            let y = scale
+                * OXTS_EARTH_RADIUS
+                * ((90.0 + o.lat) * std::f64::consts::PI / 360.0).tan().ln();
+            let q = glam::DQuat::from_rotation_z(o.yaw)
+                * glam::DQuat::from_rotation_y(o.pitch)
+                * glam::DQuat::from_rotation_x(o.roll);
+            Se3::new(q, DVec3::new(x, y, o.alt))
+        })
+        .collect()
+}
+
+/// The inverse of [`oxts_poses`]' projection for one pose, given the first record's latitude (for tests
+/// and for writing OXTS records of a known trajectory).
+pub fn oxts_from_pose(pose: &Se3, lat0: f64) -> Oxts {
+    let scale = lat0.to_radians().cos();
+    let t = pose.trans;
+    let lon = (t.x / (scale * OXTS_EARTH_RADIUS)).to_degrees();
+    let lat = 2.0
+        * (t.y / (scale * OXTS_EARTH_RADIUS))
+            .exp()
+            .atan()
+            .to_degrees()
+        - 90.0;
+    let (yaw, pitch, roll) = pose.rot.to_euler(glam::EulerRot::ZYX);
+    Oxts {
+        lat,
+        lon,
+        alt: t.z,
+        roll,
+        pitch,
+        yaw,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn raw_timestamps_are_seconds_after_the_first_across_midnight_and_months() {
+        let t = parse_datetimes(
+            "2011-09-26 13:02:25.964389445\n2011-09-26 13:02:26.068074849\n2011-09-30 23:59:59.5\n2011-10-01 00:00:00.25\n",
+            "timestamps.txt",
+        )
+        .unwrap();
+        assert!((t[1] - 0.103685404).abs() < 1e-9, "{t:?}");
+        let to_30th =
+            4.0 * 86_400.0 + (23.0 - 13.0) * 3_600.0 + (59.0 - 2.0) * 60.0 + 59.5 - 25.964389445;
+        assert!((t[2] - to_30th).abs() < 1e-6, "{t:?}");
+        assert!((t[3] - t[2] - 0.75).abs() < 1e-9, "{t:?}");
+        for bad in [
+            "2011-09-26 13:02:25.9\n2011-09-26 13:02:25.9\n",
+            "2011-13-26 13:02:25.9\n",
+            "2011-09-26T13:02:25.9\n",
+            "13:02:25.9\n",
+            "2011-09-26 13:02:-5\n",
+            "",
+        ] {
+            let e = parse_datetimes(bad, "image_02/timestamps.txt")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("image_02/timestamps.txt"), "{bad:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn oxts_records_parse_and_project_as_the_devkit_and_invert() {
+        // 2011_09_26_drive_0001's first record.
+        let rec = "49.015003823272 8.4342971002335 116.43032836914 0.035752 0.00903 -2.6087069803847 -7.3874582988118 7.2834701230779 10.37416206183 -0.17004600225342 -0.046891081961614 0.42018270050397 0.7893624111408 9.7998458934587 -0.051012051999397 0.40905316838493 9.8003713154212 -0.015016062324513 0.018157625071025 0.024021981040087 -0.014620598719226 0.019080598225069 0.023746622811066 0.77373859283445 0.19416152518153 4 10 4 4 0\n";
+        let o = parse_oxts(rec, "0000000000.txt").unwrap();
+        assert_eq!((o.lat, o.yaw), (49.015003823272, -2.6087069803847));
+        let p = oxts_poses(&[
+            o,
+            Oxts {
+                lat: o.lat + 1e-5,
+                ..o
+            },
+        ]);
+        // One hundred-thousandth of a degree of latitude is ~1.11 m north, scaled by nothing else.
+        let d = p[1].trans - p[0].trans;
+        assert!(d.x.abs() < 1e-9 && (d.y - 1.1132).abs() < 2e-3, "{d:?}");
+        let back = oxts_from_pose(&p[0], o.lat);
+        for (a, b) in [(back.lat, o.lat), (back.lon, o.lon), (back.alt, o.alt)] {
+            assert!((a - b).abs() < 1e-9, "{back:?}");
+        }
+        for (a, b) in [
+            (back.roll, o.roll),
+            (back.pitch, o.pitch),
+            (back.yaw, o.yaw),
+        ] {
+            assert!((a - b).abs() < 1e-12, "{back:?}");
+        }
+        for bad in [
+            "",
+            "1 2 3\n",
+            &rec.replace("116.43", "nan"),
+            &format!("{rec}{rec}"),
+            &rec.replacen("49.01", "99.01", 1),
+        ] {
+            let e = parse_oxts(bad, "oxts/data/0000000000.txt")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("oxts/data/0000000000.txt"), "{e}");
+        }
+    }
 
     fn floats(v: &[f32]) -> Vec<u8> {
         v.iter().flat_map(|x| x.to_le_bytes()).collect()

@@ -102,9 +102,8 @@ impl Default for KittiOptions {
 #[derive(Clone, Debug, Serialize)]
 pub struct KittiSummary {
     pub path: PathBuf,
-    /// `odometry`.
-    pub layout: String,
-    /// The sequence folder's name (`00`).
+    pub layout: KittiLayout,
+    /// The sequence or drive folder's name (`00`, `2011_09_26_drive_0001_sync`).
     pub sequence: String,
     pub keyframes: usize,
     pub images: usize,
@@ -138,23 +137,6 @@ fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>, KittiImportError> {
 
 fn read_text(path: &Path, max: u64) -> Result<String, KittiImportError> {
     String::from_utf8(read_bounded(path, max)?).map_err(|_| invalid(path, "not UTF-8 text"))
-}
-
-/// Frame numbers of the `NNNNNN.png` files in `dir`, sorted.
-fn png_frames(dir: &Path) -> Result<Vec<usize>, KittiImportError> {
-    let mut frames: Vec<usize> = std::fs::read_dir(dir)
-        .map_err(|e| invalid(dir, e.to_string()))?
-        .flatten()
-        .filter_map(|e| {
-            let name = e.file_name().to_str()?.to_string();
-            let stem = name.strip_suffix(".png")?;
-            (!stem.is_empty() && stem.bytes().all(|b| b.is_ascii_digit()))
-                .then(|| stem.parse().ok())
-                .flatten()
-        })
-        .collect();
-    frames.sort_unstable();
-    Ok(frames)
 }
 
 /// KITTI's world (cam0 of frame 0: x right, y down, z forward) → ours (z up): `(z, −x, −y)`.
@@ -234,7 +216,272 @@ fn load_image(path: &Path, full: (u32, u32), f: u32) -> Result<Vec<[u8; 3]>, Kit
     Ok(crate::dataset::resize_rgb(pixels, full.0, full.1, f))
 }
 
-/// Imports the KITTI odometry sequence folder `seq` (`…/sequences/NN`) into a dataset at `out`.
+/// Which KITTI release a folder follows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum KittiLayout {
+    /// The odometry benchmark: `sequences/NN/{image_2,image_3,velodyne,calib.txt,times.txt}`.
+    Odometry,
+    /// The raw release: `DATE/DATE_drive_NNNN_sync/{image_02,image_03,velodyne_points,oxts}/data/…` with
+    /// `calib_cam_to_cam.txt`, `calib_velo_to_cam.txt` (and `calib_imu_to_velo.txt`) in `DATE/`.
+    Raw,
+}
+
+/// A KITTI folder resolved to what the import reads, whichever release it follows: both colour cameras'
+/// images, the sweeps, the calibration, the frame times, and the trajectory recorded with the data (the
+/// odometry ground truth, or the raw release's OXTS) where there is one.
+struct Source {
+    layout: KittiLayout,
+    /// The sequence or drive folder.
+    root: PathBuf,
+    /// `image_2`/`image_3` (odometry) or `image_02/data`/`image_03/data` (raw).
+    images: [PathBuf; 2],
+    /// `velodyne` or `velodyne_points/data`.
+    velo: PathBuf,
+    /// Digits of a frame's file name: 6 (odometry) or 10 (raw).
+    digits: usize,
+    /// The file the projections were read from, and every calibration file read.
+    calib_path: PathBuf,
+    calib_files: Vec<PathBuf>,
+    projections: [kitti::Projection; 2],
+    /// The lidar in rectified cam0's frame.
+    t_cam0_lidar: Se3,
+    /// Frame i's time (s), and the file they came from.
+    times: Vec<f64>,
+    times_path: PathBuf,
+    /// Where ground truth was looked for (odometry), for the notice when none is found.
+    tried: Vec<PathBuf>,
+    /// The trajectory found with the data: its name and `T_world_cam0` per frame number (`None` where the
+    /// frame has no record), the world being rectified cam0 at the first recorded frame, as KITTI's ground
+    /// truth is.
+    recorded: Option<(String, Vec<Option<Se3>>)>,
+}
+
+impl Source {
+    fn frame_name(&self, f: usize) -> String {
+        format!("{f:0width$}", width = self.digits)
+    }
+
+    fn dir_label(&self, i: usize) -> String {
+        let dir = if i < 2 { &self.images[i] } else { &self.velo };
+        dir.strip_prefix(&self.root)
+            .unwrap_or(dir)
+            .display()
+            .to_string()
+    }
+
+    /// Resolves `path`: an odometry sequence (it holds `calib.txt`) or a raw drive (it holds `image_02/`
+    /// or `velodyne_points/`); anything else is refused with what was expected (and, for a release's root,
+    /// which folders inside it would do).
+    fn open(path: &Path) -> Result<Self, KittiImportError> {
+        if path.join("calib.txt").is_file() {
+            return Self::odometry(path);
+        }
+        if path.join("image_02").is_dir() || path.join("velodyne_points").is_dir() {
+            return Self::raw(path);
+        }
+        let sequences = path.join("sequences");
+        if sequences.is_dir() {
+            let names = subfolders(&sequences, |p| p.join("calib.txt").is_file())?;
+            return Err(invalid(
+                path,
+                format!(
+                    "a KITTI odometry root: give one sequence folder, e.g. {} (sequences with calib.txt: {})",
+                    sequences.join(names.first().map_or("00", String::as_str)).display(),
+                    if names.is_empty() { "none".to_string() } else { names.join(", ") }
+                ),
+            ));
+        }
+        let drives = subfolders(path, |p| p.join("image_02").is_dir())?;
+        if !drives.is_empty() {
+            return Err(invalid(
+                path,
+                format!(
+                    "a KITTI raw date folder: give one drive, e.g. {} (drives: {})",
+                    path.join(&drives[0]).display(),
+                    drives.join(", ")
+                ),
+            ));
+        }
+        Err(invalid(
+            path,
+            "not a KITTI folder: expected an odometry sequence (calib.txt, times.txt, image_2/, image_3/, \
+             velodyne/) or a raw drive (DATE_drive_NNNN_sync with image_02/, image_03/, velodyne_points/, \
+             oxts/, and calib_cam_to_cam.txt, calib_velo_to_cam.txt beside it)",
+        ))
+    }
+
+    fn odometry(seq: &Path) -> Result<Self, KittiImportError> {
+        let calib_path = seq.join("calib.txt");
+        let calib = kitti::parse_calib(
+            &read_text(&calib_path, MAX_CALIB_BYTES)?,
+            &calib_path.display().to_string(),
+        )?;
+        let projections = [calib.projection("P2")?, calib.projection("P3")?];
+        let t_cam0_lidar = calib.rigid("Tr")?;
+        let times_path = seq.join("times.txt");
+        let times = kitti::parse_times(
+            &read_text(&times_path, MAX_TEXT_BYTES)?,
+            &times_path.display().to_string(),
+        )?;
+        let tried = pose_candidates(seq);
+        let recorded = match tried.iter().find(|p| p.is_file()) {
+            Some(p) => Some((p.display().to_string(), read_kitti_poses(p)?)),
+            None => None,
+        };
+        Ok(Self {
+            layout: KittiLayout::Odometry,
+            root: seq.to_path_buf(),
+            images: [seq.join("image_2"), seq.join("image_3")],
+            velo: seq.join("velodyne"),
+            digits: 6,
+            calib_files: vec![calib_path.clone()],
+            calib_path,
+            projections,
+            t_cam0_lidar,
+            times,
+            times_path,
+            tried,
+            recorded,
+        })
+    }
+
+    fn raw(drive: &Path) -> Result<Self, KittiImportError> {
+        // The calibration sits in the date folder above the drive (as released), or in the drive itself.
+        let find = |name: &str| {
+            let up = drive.parent().map(|d| d.join(name));
+            let here = drive.join(name);
+            if here.is_file() {
+                Ok(here)
+            } else if let Some(up) = up.filter(|p| p.is_file()) {
+                Ok(up)
+            } else {
+                Err(invalid(
+                    drive,
+                    format!(
+                        "a KITTI raw drive needs {name} in its date folder (or beside its image_02/): \
+                         not found"
+                    ),
+                ))
+            }
+        };
+        let read = |p: &Path| -> Result<kitti::Calib, KittiImportError> {
+            Ok(kitti::parse_calib(
+                &read_text(p, MAX_CALIB_BYTES)?,
+                &p.display().to_string(),
+            )?)
+        };
+        let cam_path = find("calib_cam_to_cam.txt")?;
+        let velo_path = find("calib_velo_to_cam.txt")?;
+        let cam = read(&cam_path)?;
+        let projections = [cam.projection("P_rect_02")?, cam.projection("P_rect_03")?];
+        // The projections act on rectified cam0 coordinates: velodyne → cam0 → rectified cam0.
+        let r = cam.exactly("R_rect_00", 9, "a 3 × 3 rotation")?;
+        let r_rect = DMat3::from_cols(
+            DVec3::new(r[0], r[3], r[6]),
+            DVec3::new(r[1], r[4], r[7]),
+            DVec3::new(r[2], r[5], r[8]),
+        );
+        let r_rect = poses::nearest_rotation(r_rect)
+            .map_err(|e| invalid(&cam_path, format!("R_rect_00: {e}")))?;
+        let t_cam0_lidar = Se3::new(r_rect, DVec3::ZERO) * read(&velo_path)?.rigid_rt("R", "T")?;
+        let mut calib_files = vec![cam_path.clone(), velo_path];
+        let times_path = drive.join("image_02").join("timestamps.txt");
+        let times = kitti::parse_datetimes(
+            &read_text(&times_path, MAX_TEXT_BYTES)?,
+            &times_path.display().to_string(),
+        )?;
+        // The OXTS (GPS/IMU) poses: the devkit's local Mercator frame, the IMU placed by
+        // calib_imu_to_velo.txt, then re-based on the first frame's rectified cam0.
+        let oxts_dir = drive.join("oxts").join("data");
+        let recorded = if oxts_dir.is_dir() {
+            let imu_path = find("calib_imu_to_velo.txt")?;
+            let t_lidar_imu = read(&imu_path)?.rigid_rt("R", "T")?;
+            calib_files.push(imu_path);
+            let t_imu_cam0 = (t_cam0_lidar * t_lidar_imu).inverse();
+            let frames = numbered_files(&oxts_dir, ".txt", 10)?;
+            let mut records = Vec::new();
+            for &f in &frames {
+                let p = oxts_dir.join(format!("{f:010}.txt"));
+                records.push(kitti::parse_oxts(
+                    &read_text(&p, MAX_CALIB_BYTES)?,
+                    &p.display().to_string(),
+                )?);
+            }
+            let world_imu = kitti::oxts_poses(&records);
+            let mut out = vec![None; frames.last().map_or(0, |&l| l + 1)];
+            if let Some(first) = world_imu.first() {
+                let base = (*first * t_imu_cam0).inverse();
+                for (&f, p) in frames.iter().zip(&world_imu) {
+                    out[f] = Some(base * *p * t_imu_cam0);
+                }
+            }
+            Some((format!("{} (OXTS)", oxts_dir.display()), out))
+        } else {
+            None
+        };
+        Ok(Self {
+            layout: KittiLayout::Raw,
+            root: drive.to_path_buf(),
+            images: [
+                drive.join("image_02").join("data"),
+                drive.join("image_03").join("data"),
+            ],
+            velo: drive.join("velodyne_points").join("data"),
+            digits: 10,
+            calib_path: cam_path,
+            calib_files,
+            projections,
+            t_cam0_lidar,
+            times,
+            times_path,
+            tried: vec![oxts_dir],
+            recorded,
+        })
+    }
+}
+
+/// Names of the folders in `dir` that pass `keep`, sorted.
+fn subfolders(dir: &Path, keep: impl Fn(&Path) -> bool) -> Result<Vec<String>, KittiImportError> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .map_err(|e| invalid(dir, e.to_string()))?
+        .flatten()
+        .filter(|e| keep(&e.path()))
+        .filter_map(|e| e.file_name().to_str().map(str::to_string))
+        .collect();
+    names.sort();
+    Ok(names)
+}
+
+/// Frame numbers of the files `<digits digits><ext>` in `dir`, sorted.
+fn numbered_files(dir: &Path, ext: &str, digits: usize) -> Result<Vec<usize>, KittiImportError> {
+    let mut frames: Vec<usize> = std::fs::read_dir(dir)
+        .map_err(|e| invalid(dir, e.to_string()))?
+        .flatten()
+        .filter_map(|e| {
+            let name = e.file_name().to_str()?.to_string();
+            let stem = name.strip_suffix(ext)?;
+            (stem.len() == digits && stem.bytes().all(|b| b.is_ascii_digit()))
+                .then(|| stem.parse().ok())
+                .flatten()
+        })
+        .collect();
+    frames.sort_unstable();
+    Ok(frames)
+}
+
+/// A KITTI-format trajectory file: `T_world_cam0` of frame i on line i.
+fn read_kitti_poses(path: &Path) -> Result<Vec<Option<Se3>>, KittiImportError> {
+    // Frame i's pose is line i: the stamps come from the times by index, so a period of 1 is a placeholder.
+    let gt = poses::parse_kitti(
+        &read_text(path, MAX_TEXT_BYTES)?,
+        &path.display().to_string(),
+        KittiTimes::Period(1.0),
+    )?;
+    Ok(gt.poses().iter().copied().map(Some).collect())
+}
+
+/// Imports the KITTI odometry sequence folder or raw drive folder `seq` into a dataset at `out`.
 pub async fn import_kitti(
     seq: &Path,
     out: &Path,
@@ -243,105 +490,71 @@ pub async fn import_kitti(
     gpu: &Gpu,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<KittiSummary, KittiImportError> {
-    let calib_path = seq.join("calib.txt");
-    if !calib_path.is_file() {
-        let sequences = seq.join("sequences");
-        if sequences.is_dir() {
-            let mut names: Vec<String> = std::fs::read_dir(&sequences)
-                .map_err(|e| invalid(&sequences, e.to_string()))?
-                .flatten()
-                .filter(|e| e.path().join("calib.txt").is_file())
-                .filter_map(|e| e.file_name().to_str().map(str::to_string))
-                .collect();
-            names.sort();
-            return Err(invalid(
-                seq,
-                format!(
-                    "a KITTI odometry root: give one sequence folder, e.g. {} (sequences with calib.txt: {})",
-                    sequences.join(names.first().map_or("00", String::as_str)).display(),
-                    if names.is_empty() { "none".to_string() } else { names.join(", ") }
-                ),
-            ));
-        }
-        return Err(invalid(
-            seq,
-            "not a KITTI odometry sequence: no calib.txt (expected calib.txt, times.txt, image_2/, \
-             image_3/, velodyne/)",
-        ));
-    }
-    let calib = kitti::parse_calib(
-        &read_text(&calib_path, MAX_CALIB_BYTES)?,
-        &calib_path.display().to_string(),
-    )?;
-    let projections = [calib.projection("P2")?, calib.projection("P3")?];
-    let t_cam0_lidar = calib.rigid("Tr")?;
-    let times_path = seq.join("times.txt");
-    let times = kitti::parse_times(
-        &read_text(&times_path, MAX_TEXT_BYTES)?,
-        &times_path.display().to_string(),
-    )?;
+    let src = Source::open(seq)?;
+    let (calib_path, times_path) = (src.calib_path.clone(), src.times_path.clone());
+    let (t_cam0_lidar, times) = (src.t_cam0_lidar, &src.times);
 
-    // The trajectory: given, the ground truth beside the sequence, or lidar odometry (asked for, or with
-    // a notice when there is neither).
+    // The trajectory: given, the one recorded with the data (ground truth, OXTS), or lidar odometry (asked
+    // for, or with a notice when there is none).
     let mut notices = Vec::new();
-    let tried = pose_candidates(seq);
-    let file = match &options.poses {
-        Some(p) => Some(p.clone()),
+    let recorded = match &options.poses {
+        Some(p) => Some((p.display().to_string(), read_kitti_poses(p)?)),
         None if options.lidar_odometry => None,
-        None => tried.iter().find(|p| p.is_file()).cloned(),
+        None => src.recorded.clone(),
     };
-    let (poses_name, gt): (String, Vec<Se3>) = match file {
-        Some(poses_path) => {
-            let name = poses_path.display().to_string();
-            // Frame i's pose is line i: the stamps come from times.txt by index, so a period of 1 is a
-            // placeholder.
-            let gt = poses::parse_kitti(
-                &read_text(&poses_path, MAX_TEXT_BYTES)?,
-                &name,
-                KittiTimes::Period(1.0),
-            )?;
-            (name, gt.poses().to_vec())
-        }
+    let (poses_name, gt): (String, Vec<Option<Se3>>) = match recorded {
+        Some(r) => r,
         None => {
             if !options.lidar_odometry {
+                let what = match src.layout {
+                    KittiLayout::Odometry => {
+                        "KITTI publishes ground truth for sequences 00-10 only and none was found"
+                    }
+                    KittiLayout::Raw => "the drive has no OXTS records",
+                };
                 notices.push(format!(
-                    "no trajectory: KITTI publishes ground truth for sequences 00-10 only and none was found \
-                     ({}); using lidar odometry over velodyne/ (--poses lidar says so explicitly; --poses FILE \
-                     gives one, KITTI format: T_world_cam0 of frame i on line i)",
-                    tried
+                    "no trajectory: {what} ({}); using lidar odometry over {} (--poses lidar says so \
+                     explicitly; --poses FILE gives one, KITTI format: T_world_cam0 of frame i on line i)",
+                    src.tried
                         .iter()
                         .map(|p| p.display().to_string())
                         .collect::<Vec<_>>()
-                        .join(", ")
+                        .join(", "),
+                    src.dir_label(2),
                 ));
             }
             (
-                "lidar odometry (velodyne/)".to_string(),
-                lidar_trajectory(seq, &t_cam0_lidar, options.frames)?,
+                format!("lidar odometry ({}/)", src.dir_label(2)),
+                lidar_trajectory(&src, options.frames)?
+                    .into_iter()
+                    .map(Some)
+                    .collect(),
             )
         }
     };
     let poses_path = PathBuf::from(&poses_name);
-    let gt = gt.as_slice();
 
-    // Frames: every image_2 frame with its image_3 frame and sweep, within the selection.
-    let dirs = [seq.join("image_2"), seq.join("image_3")];
-    let velo = seq.join("velodyne");
+    // Frames: every left-camera frame with its right-camera frame and sweep, within the selection.
+    let dirs = src.images.clone();
+    let velo = src.velo.clone();
+    let labels = [src.dir_label(0), src.dir_label(1), src.dir_label(2)];
     let mut skipped = Vec::new();
     let mut frames = Vec::new();
     let every = options.every.max(1);
-    let selected = png_frames(&dirs[0])?
+    let selected = numbered_files(&dirs[0], ".png", src.digits)?
         .into_iter()
         .filter(|f| options.frames.is_none_or(|(a, b)| (a..=b).contains(f)));
     for (i, f) in selected.enumerate() {
         if i % every != 0 {
             continue;
         }
-        let name = format!("{f:06}");
+        let name = src.frame_name(f);
         if !dirs[1].join(format!("{name}.png")).is_file() {
-            skipped.push(format!("{name}: no image_3/{name}.png"));
+            skipped.push(format!("{name}: no {}/{name}.png", labels[1]));
         } else if !velo.join(format!("{name}.bin")).is_file() {
-            skipped.push(format!("{name}: no velodyne/{name}.bin"));
+            skipped.push(format!("{name}: no {}/{name}.bin", labels[2]));
+        } else if f < gt.len() && gt[f].is_none() {
+            skipped.push(format!("{name}: no pose in {poses_name}"));
         } else {
             frames.push(f);
         }
@@ -350,7 +563,11 @@ pub async fn import_kitti(
         return Err(invalid(
             seq,
             format!(
-                "no frame with image_2/NNNNNN.png, image_3/NNNNNN.png and velodyne/NNNNNN.bin{}{}",
+                "no frame with {0}/{3}.png, {1}/{3}.png and {2}/{3}.bin{4}{5}",
+                labels[0],
+                labels[1],
+                labels[2],
+                "N".repeat(src.digits),
                 if options.frames.is_some() {
                     " in the selected range"
                 } else {
@@ -368,8 +585,9 @@ pub async fn import_kitti(
         return Err(invalid(
             &times_path,
             format!(
-                "{} stamps, but frame {last:06} needs line {}",
+                "{} stamps, but frame {} needs line {}",
                 times.len(),
+                src.frame_name(last),
                 last + 1
             ),
         ));
@@ -378,19 +596,27 @@ pub async fn import_kitti(
         return Err(invalid(
             &poses_path,
             format!(
-                "{} poses, but frame {last:06} needs line {}",
+                "{} poses, but frame {} needs line {}",
                 gt.len(),
+                src.frame_name(last),
                 last + 1
             ),
         ));
     }
+    let gt: Vec<Se3> = gt.into_iter().map(Option::unwrap_or_default).collect();
+    let gt = gt.as_slice();
+    let projections = src.projections;
 
     // The rig: base = cam0, the lidar by Tr, both colour cameras at their first image's size.
     let scale = options.downscale.max(1);
-    let first = format!("{:06}.png", frames[0]);
+    let first = format!("{}.png", src.frame_name(frames[0]));
     let mut cameras = Vec::new();
     let mut full_sizes = Vec::new();
-    for ((dir, p), name) in dirs.iter().zip(&projections).zip(["image_2", "image_3"]) {
+    let names = match src.layout {
+        KittiLayout::Odometry => ["image_2", "image_3"],
+        KittiLayout::Raw => ["image_02", "image_03"],
+    };
+    for ((dir, p), name) in dirs.iter().zip(&projections).zip(names) {
         let path = dir.join(&first);
         let size = image::image_dimensions(&path).map_err(|e| invalid(&path, e.to_string()))?;
         if size.0 < scale || size.1 < scale {
@@ -429,7 +655,7 @@ pub async fn import_kitti(
     let total = frames.len();
     for (k, &f) in frames.iter().enumerate() {
         progress(k, total);
-        let name = format!("{f:06}");
+        let name = src.frame_name(f);
         let scan_path = velo.join(format!("{name}.bin"));
         let bytes = read_bounded(&scan_path, MAX_SWEEP_BYTES)?;
         let scan = kitti::read_bin_bytes(
@@ -523,7 +749,7 @@ pub async fn import_kitti(
     w.write_json("transforms.json", &transforms)?;
     let summary = KittiSummary {
         path: out.to_path_buf(),
-        layout: "odometry".into(),
+        layout: src.layout,
         sequence: seq
             .file_name()
             .map(|n| n.to_string_lossy().to_string())
@@ -542,16 +768,26 @@ pub async fn import_kitti(
         "layout_version": dataset::LAYOUT_VERSION,
         "generator": "silvr-import-kitti 1",
         "source": seq.display().to_string(),
-        "calib": calib_path.display().to_string(),
+        "calib": src.calib_files.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
         "times": times_path.display().to_string(),
         "downscale": scale,
         "summary": &summary,
         "world": "KITTI's (cam0 of frame 0: x right, y down, z forward) turned z-up: our (x, y, z) = KITTI's (z, -x, -y); metres",
         "notes": {
-            "deskew": "none: KITTI odometry sweeps are motion-compensated already and carry no per-point time; lidar/deskewed = lidar/raw, and each sweep pairs with its frame's images through the fixed rig (the cameras are triggered as the lidar faces forward)",
+            "deskew": match src.layout {
+                KittiLayout::Odometry => "none: KITTI odometry sweeps are motion-compensated already and carry no per-point time; lidar/deskewed = lidar/raw, and each sweep pairs with its frame's images through the fixed rig (the cameras are triggered as the lidar faces forward)",
+                KittiLayout::Raw => "none: the raw release's synced sweeps carry no per-point time (only each sweep's start and end); taken as one instant at the frame's image stamp, as the odometry benchmark (made from these drives) takes them; lidar/deskewed = lidar/raw (the cameras are triggered as the lidar faces forward, where the sweep and image agree best)",
+            },
             "rings": "none in the .bin sweeps: rings and columns from an angular grid (cells about as many as points), as for DGP sweeps",
             "sky": "lidar no-returns above the horizon with nothing above them seed a flood fill over blue-leaning, smooth pixels, stopped by projected returns; the HDL-64E sees only up to about +2 degrees, so higher up the image alone decides (pixels more than 2 degrees above the top beam that look like sky); a white, overexposed sky is not sky-coloured by this rule and stays unmasked (sky_pixels counts what was masked)",
-            "cameras": "image_2 and image_3 from P2 and P3: rectified pinhole, intrinsics from P's left 3x3, each camera at -K^-1 P[:,3] in cam0's frame with cam0's rotation; lidar to cam0 from Tr",
+            "cameras": match src.layout {
+                KittiLayout::Odometry => "image_2 and image_3 from P2 and P3: rectified pinhole, intrinsics from P's left 3x3, each camera at -K^-1 P[:,3] in cam0's frame with cam0's rotation; lidar to cam0 from Tr",
+                KittiLayout::Raw => "image_02 and image_03 (the synced, rectified images) from P_rect_02 and P_rect_03: intrinsics from P's left 3x3, each camera at -K^-1 P[:,3] in rectified cam0's frame; lidar to rectified cam0 = R_rect_00 . [R|T] of calib_velo_to_cam.txt",
+            },
+            "poses": match src.layout {
+                KittiLayout::Odometry => "the sequence's ground truth (T_world_cam0 per frame), a --poses file, or lidar odometry",
+                KittiLayout::Raw => "OXTS as the KITTI devkit converts it (Mercator scaled by the first record's latitude; Rz(yaw) Ry(pitch) Rx(roll)), the IMU placed by calib_imu_to_velo.txt, re-based on the first frame's rectified cam0; or a --poses file, or lidar odometry",
+            },
             "hold_out": "every keyframe k with k mod 10 = 5 (both cameras)",
         },
         "files": w.files(),
@@ -562,14 +798,13 @@ pub async fn import_kitti(
 }
 
 /// `T_world_cam0` per KITTI frame number (identity where a frame has no sweep) from lidar odometry over the
-/// sequence's sweeps within `frames`: `Tr · T_lidar0_lidar · Tr⁻¹`, the world cam0 at the first sweep, as
-/// KITTI's ground truth is. The sweeps are motion-compensated: no deskew.
+/// sweeps within `frames`: `Tr · T_lidar0_lidar · Tr⁻¹`, the world cam0 at the first sweep, as KITTI's
+/// ground truth is. No deskew: the sweeps carry no point times.
 fn lidar_trajectory(
-    seq: &Path,
-    t_cam0_lidar: &Se3,
+    src: &Source,
     frames: Option<(usize, usize)>,
 ) -> Result<Vec<Se3>, KittiImportError> {
-    let mut lidar = KittiLidar::open(seq)?;
+    let mut lidar = KittiLidar::from_source(src)?;
     if let Some((a, b)) = frames {
         let keep: Vec<usize> = (0..lidar.frames.len())
             .filter(|&k| (a..=b).contains(&lidar.frames[k]))
@@ -581,7 +816,6 @@ fn lidar_trajectory(
         deskew: crate::odometry::DeskewMode::Off,
         ..Default::default()
     };
-    let velo = seq.join("velodyne");
     let run = crate::odometry::run(
         &config,
         (0..lidar.frames.len()).map(|k| {
@@ -591,110 +825,107 @@ fn lidar_trajectory(
         }),
         |_, _| {},
     )
-    .map_err(|e| invalid(&velo, format!("lidar odometry: {e}")))?;
+    .map_err(|e| invalid(&src.velo, format!("lidar odometry: {e}")))?;
     let last = lidar.frames.last().copied().unwrap_or(0);
     let mut out = vec![Se3::IDENTITY; last + 1];
+    let t_cam0_lidar = src.t_cam0_lidar;
     let tr_inv = t_cam0_lidar.inverse();
     for (&f, p) in lidar.frames.iter().zip(&run.poses) {
-        out[f] = *t_cam0_lidar * *p * tr_inv;
+        out[f] = t_cam0_lidar * *p * tr_inv;
     }
     Ok(out)
 }
 
-/// The lidar of a KITTI odometry sequence, for lidar odometry (`silvr odometry SEQ`): the sweeps in frame
-/// order with their times, and the ground truth in the lidar's frame where the sequence has one.
+/// The lidar of a KITTI odometry sequence or raw drive, for lidar odometry (`silvr odometry SEQ`): the
+/// sweeps in frame order with their times, and the recorded trajectory (ground truth or OXTS) in the
+/// lidar's frame where there is one.
 pub struct KittiLidar {
     velo: PathBuf,
+    digits: usize,
     /// KITTI frame numbers with a sweep, ascending.
     pub frames: Vec<usize>,
-    /// Time of each of `frames` (s, times.txt).
+    /// Time of each of `frames` (s, times.txt or image_02/timestamps.txt).
     pub times: Vec<f64>,
     /// `T_lidar0_lidar` of each of `frames` (`Tr⁻¹ · T_world_cam0 · Tr`, relative to the first), and the
-    /// file it came from, when ground truth was found beside the sequence.
+    /// file it came from, when the sequence or drive records a trajectory for every one of them.
     pub ground_truth: Option<(PathBuf, Vec<Se3>)>,
 }
 
 impl KittiLidar {
-    /// Reads the sequence folder's `times.txt`, `calib.txt` (for the ground truth) and lists `velodyne/`.
+    /// Reads a sequence's `times.txt` and `calib.txt` (a drive's timestamps, calibration and OXTS) and lists
+    /// its sweeps.
     pub fn open(seq: &Path) -> Result<Self, KittiImportError> {
-        let velo = seq.join("velodyne");
-        let mut frames: Vec<usize> = std::fs::read_dir(&velo)
-            .map_err(|e| {
-                invalid(
-                    &velo,
-                    format!("{e} (a KITTI odometry sequence has velodyne/NNNNNN.bin)"),
-                )
-            })?
-            .flatten()
-            .filter_map(|e| {
-                let name = e.file_name();
-                let s = name.to_str()?;
-                let stem = s.strip_suffix(".bin")?;
-                (stem.len() == 6).then(|| stem.parse().ok()).flatten()
-            })
-            .collect();
-        frames.sort_unstable();
-        if frames.is_empty() {
-            return Err(invalid(&velo, "no NNNNNN.bin sweep"));
-        }
-        let times_path = seq.join("times.txt");
-        let all_times = kitti::parse_times(
-            &read_text(&times_path, MAX_TEXT_BYTES)?,
-            &times_path.display().to_string(),
-        )?;
-        let last = *frames.last().unwrap_or(&0);
-        if last >= all_times.len() {
+        Self::from_source(&Source::open(seq)?)
+    }
+
+    fn from_source(src: &Source) -> Result<Self, KittiImportError> {
+        let velo = src.velo.clone();
+        let frames = numbered_files(&velo, ".bin", src.digits).map_err(|e| {
+            invalid(
+                &velo,
+                format!("{e} (a KITTI sequence has velodyne/NNNNNN.bin, a raw drive velodyne_points/data/)"),
+            )
+        })?;
+        let Some(&last) = frames.last() else {
             return Err(invalid(
-                &times_path,
+                &velo,
+                format!("no {}.bin sweep", "N".repeat(src.digits)),
+            ));
+        };
+        if last >= src.times.len() {
+            return Err(invalid(
+                &src.times_path,
                 format!(
-                    "{} stamps, but frame {last:06} needs line {}",
-                    all_times.len(),
+                    "{} stamps, but frame {} needs line {}",
+                    src.times.len(),
+                    src.frame_name(last),
                     last + 1
                 ),
             ));
         }
-        let times = frames.iter().map(|&f| all_times[f]).collect();
-        let calib_path = seq.join("calib.txt");
-        let ground_truth = match pose_candidates(seq).into_iter().find(|p| p.is_file()) {
-            Some(path) if calib_path.is_file() => {
-                let calib = kitti::parse_calib(
-                    &read_text(&calib_path, MAX_CALIB_BYTES)?,
-                    &calib_path.display().to_string(),
-                )?;
-                let tr = calib.rigid("Tr")?;
-                let gt = poses::parse_kitti(
-                    &read_text(&path, MAX_TEXT_BYTES)?,
-                    &path.display().to_string(),
-                    KittiTimes::Period(1.0),
-                )?;
-                let gt = gt.poses();
-                if last >= gt.len() {
+        let times = frames.iter().map(|&f| src.times[f]).collect();
+        let ground_truth = match &src.recorded {
+            Some((name, gt)) => {
+                let tr = src.t_cam0_lidar;
+                let w_l: Option<Vec<Se3>> = frames
+                    .iter()
+                    .map(|&f| gt.get(f).copied().flatten().map(|p| p * tr))
+                    .collect();
+                if w_l.is_none() && src.layout == KittiLayout::Odometry {
                     return Err(invalid(
-                        &path,
+                        Path::new(name),
                         format!(
-                            "{} poses, but frame {last:06} needs line {}",
+                            "{} poses, but frame {} needs line {}",
                             gt.len(),
+                            src.frame_name(last),
                             last + 1
                         ),
                     ));
                 }
-                let w_l = |f: usize| gt[f] * tr;
-                let first = w_l(frames[0]).inverse();
-                Some((path, frames.iter().map(|&f| first * w_l(f)).collect()))
+                w_l.map(|w_l| {
+                    let first = w_l[0].inverse();
+                    (
+                        PathBuf::from(name),
+                        w_l.iter().map(|p| first * *p).collect(),
+                    )
+                })
             }
-            _ => None,
+            None => None,
         };
         Ok(Self {
             velo,
+            digits: src.digits,
             frames,
             times,
             ground_truth,
         })
     }
 
-    /// Sweep `k` (of `frames`): motion-compensated already, so no point times.
+    /// Sweep `k` (of `frames`): no point times.
     pub fn sweep(&self, k: usize) -> Result<crate::odometry::Sweep, KittiImportError> {
-        let path = self.velo.join(format!("{:06}.bin", self.frames[k]));
+        let path = self
+            .velo
+            .join(format!("{:0w$}.bin", self.frames[k], w = self.digits));
         let bytes = read_bounded(&path, MAX_SWEEP_BYTES)?;
         let scan = kitti::read_bin_bytes(&bytes, &path.display().to_string(), kitti::KITTI_STRIDE)?;
         Ok(crate::odometry::Sweep {

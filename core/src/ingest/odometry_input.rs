@@ -1,7 +1,7 @@
 //! The lidar sweeps of a recording in time order, for lidar odometry (`silvr odometry INPUT`): a ROS 2
-//! bag's PointCloud2 messages on one topic (with per-point times when the driver publishes them), or a
-//! KITTI odometry sequence's `velodyne/` (motion-compensated, with the sequence's ground truth in the
-//! lidar frame when it has one). Bag sweeps that cannot be used (a bad cloud, no points, a time not after
+//! bag's PointCloud2 messages on one topic (with per-point times when the driver publishes them; MCAP,
+//! ROS 1 or rosbag2), or a KITTI odometry sequence's `velodyne/` or raw drive's `velodyne_points/` (no
+//! point times, with the ground truth or OXTS in the lidar frame when there is one). Bag sweeps that cannot be used (a bad cloud, no points, a time not after
 //! the previous one) are counted by reason, not fatal.
 
 use std::collections::BTreeMap;
@@ -38,20 +38,14 @@ pub struct OdometryInput {
     pub dropped: Dropped,
 }
 
-/// Opens `input`: a KITTI odometry sequence folder (it has `velodyne/`) or a ROS 2 bag (`.mcap`), whose
+/// Opens `input`: a KITTI odometry sequence folder (it has `velodyne/`), a KITTI raw drive (it has
+/// `velodyne_points/`) or a bag (MCAP, ROS 1 `.bag`, rosbag2 folder), whose
 /// lidar topic is `topic` or, when `None`, its only PointCloud2 topic.
 pub fn open(input: &Path, topic: Option<&str>) -> Result<OdometryInput, OdometryInputError> {
     let name = input.display().to_string();
     let dropped = Dropped::default();
-    if input.is_dir() {
-        if !input.join("velodyne").is_dir() {
-            return Err(OdometryInputError::Invalid {
-                file: name,
-                reason: "a folder without velodyne/: give a KITTI odometry sequence folder \
-                         (sequences/NN) or a ROS 2 bag (.mcap)"
-                    .into(),
-            });
-        }
+    // A KITTI sequence or raw drive; any other folder is taken as a rosbag2 bag (metadata.yaml + .db3).
+    if input.join("velodyne").is_dir() || input.join("velodyne_points").is_dir() {
         let seq = KittiLidar::open(input)?;
         let ground_truth = seq.ground_truth.clone();
         let n = seq.frames.len();
