@@ -1484,10 +1484,20 @@ fn ingest_error_paths_name_the_problem() {
             .collect()
     };
     let ref_depth = depth_of("e0");
-    for (name, drop_ring, drop_time) in [
-        ("no_ring", true, false),
-        ("no_time", false, true),
-        ("neither", true, true),
+    // The rig file's azimuth timing: the synthetic lidar turns counter-clockwise from +x at its stamp,
+    // once per sweep duration (its bag keeps one sweep in five, so the interval between stamps is not it).
+    let mut by_azimuth = cfg.clone();
+    by_azimuth.ingest.azimuth_timing = Some(silvr_core::ingest::config::AzimuthTiming {
+        spin: silvr_core::ingest::config::Spin::Ccw,
+        start_azimuth_deg: 0.0,
+        period: Some(preset.lidar.sweep_duration()),
+    });
+    let mut differing = std::collections::BTreeMap::new();
+    for (name, drop_ring, drop_time, cfg) in [
+        ("no_ring", true, false, &cfg),
+        ("no_time", false, true, &cfg),
+        ("neither", true, true, &cfg),
+        ("azimuth", false, true, &by_azimuth),
     ] {
         let b = dir.join(format!("{name}.mcap"));
         edit_bag(&bag, &b, |t, _, d| {
@@ -1497,7 +1507,7 @@ fn ingest_error_paths_name_the_problem() {
                 d.to_vec()
             })
         });
-        let s = run(&b, &cfg, name).unwrap_or_else(|e| panic!("{name}: {e}"));
+        let s = run(&b, cfg, name).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(s.keyframes, reference.keyframes, "{name}");
         assert!(s.dropped.is_empty(), "{name}: {:?}", s.dropped);
         let said = |what: &str| s.notices.iter().any(|n| n.contains(what));
@@ -1519,7 +1529,19 @@ fn ingest_error_paths_name_the_problem() {
             drop_time,
             "{name}: the manifest records it"
         );
+        assert_eq!(
+            said("timed from its azimuth"),
+            name == "azimuth",
+            "{name}: {:?}",
+            s.notices
+        );
         let depth = depth_of(name);
+        let worst = ref_depth
+            .iter()
+            .zip(&depth)
+            .map(|(a, b)| frac_differing(a, b, 1.0))
+            .fold(0.0, f64::max);
+        differing.insert(name, worst);
         for (k, (a, b)) in ref_depth.iter().zip(&depth).enumerate() {
             let filled = |d: &[u16]| d.iter().filter(|&&v| v > 0 && v < u16::MAX).count();
             assert!(
@@ -1527,12 +1549,19 @@ fn ingest_error_paths_name_the_problem() {
                 "{name} frame {k}: {} lidar pixels",
                 filled(b)
             );
-            if !drop_time {
-                // The ring only shapes normals and sky: the depth is the same projection.
+            if !drop_time || name == "azimuth" {
+                // The ring only shapes normals and sky: the depth is the same projection. Timed from
+                // the azimuth, each point gets its own firing time back (to within a column's).
                 assert!(frac_differing(a, b, 1.0) < 1e-3, "{name} frame {k}");
             }
         }
     }
+    eprintln!("depth pixels differing from the timed clouds' (worst frame): {differing:?}");
+    // Untimed and taken as compensated, the sweep's motion stays in the points: the depth moves.
+    assert!(
+        differing["no_time"] > 10.0 * differing["azimuth"].max(1e-4),
+        "{differing:?}"
+    );
     // A corrupt message on a topic we need is dropped and counted; the rest still ingests.
     let b = dir.join("one_bad.mcap");
     let first = std::sync::atomic::AtomicBool::new(true);

@@ -176,6 +176,10 @@ pub struct IngestSection {
     /// Azimuth columns per revolution; estimated from the data when absent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lidar_columns: Option<u32>,
+    /// Clouds without per-point time: time each point from its azimuth (a spinning lidar's firing order)
+    /// instead of taking the cloud as motion-compensated to its stamp.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub azimuth_timing: Option<AzimuthTiming>,
     /// Only images in [start, end] (bag seconds) are considered.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub start: Option<f64>,
@@ -200,10 +204,47 @@ impl Default for IngestSection {
             camera_sync: default_camera_sync(),
             min_range: default_min_range(),
             lidar_columns: None,
+            azimuth_timing: None,
             start: None,
             end: None,
             max_keyframes: None,
         }
+    }
+}
+
+/// How a spinning lidar's points are timed from their azimuth (`ingest.azimuth_timing`), for drivers that
+/// publish no per-point time: the sweep starts at `header.stamp` facing `start_azimuth_deg` (in the lidar
+/// frame, from +x towards +y) and turns once in `period` seconds, `ccw` (azimuth increasing seen from
+/// above, as Hesai and our synthetic lidar) or `cw` (Velodyne, Ouster).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AzimuthTiming {
+    pub spin: Spin,
+    #[serde(default)]
+    pub start_azimuth_deg: f64,
+    /// Seconds per turn; the median interval between the clouds' stamps when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub period: Option<f64>,
+}
+
+/// Which way a spinning lidar turns, seen from above (+z of its frame).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Spin {
+    Ccw,
+    Cw,
+}
+
+impl AzimuthTiming {
+    /// Seconds after the sweep's start at which a point at `p` (lidar frame) was fired, for a turn of
+    /// `period` s: in [0, period).
+    pub fn offset(&self, p: glam::DVec3, period: f64) -> f64 {
+        let az = p.y.atan2(p.x).to_degrees() - self.start_azimuth_deg;
+        let turned = match self.spin {
+            Spin::Ccw => az,
+            Spin::Cw => -az,
+        };
+        turned.rem_euclid(360.0) / 360.0 * period
     }
 }
 
@@ -303,6 +344,18 @@ impl RigConfig {
         }
         if i.lidar_columns == Some(0) {
             return Err("ingest.lidar_columns must be > 0".into());
+        }
+        if let Some(a) = &i.azimuth_timing {
+            if !a.start_azimuth_deg.is_finite() {
+                return Err("ingest.azimuth_timing.start_azimuth_deg must be finite".into());
+            }
+            if let Some(p) = a.period {
+                if !(p.is_finite() && p > 0.0 && p <= 10.0) {
+                    return Err(format!(
+                        "ingest.azimuth_timing.period must be in (0, 10] seconds, got {p}"
+                    ));
+                }
+            }
         }
         Ok(())
     }
@@ -465,6 +518,29 @@ mod tests {
     }
 
     #[test]
+    fn azimuth_timing_reads_and_times_a_turn() {
+        let cfg = RigConfig::parse(
+            "sensor:\n  cameras:\n    - {label: a, topic: /a}\ningest:\n  azimuth_timing: {spin: cw, start_azimuth_deg: 180}\n",
+            "rig.yaml",
+        )
+        .unwrap();
+        let a = cfg.ingest.azimuth_timing.unwrap();
+        assert_eq!(
+            (a.spin, a.start_azimuth_deg, a.period),
+            (Spin::Cw, 180.0, None)
+        );
+        // Clockwise (azimuth decreasing) from -x: +y after a quarter of the turn, -y after three.
+        let at = |x: f64, y: f64| a.offset(DVec3::new(x, y, 0.3), 0.1);
+        assert!(at(-1.0, 0.0).abs() < 1e-12);
+        assert!((at(0.0, 1.0) - 0.025).abs() < 1e-12 && (at(0.0, -1.0) - 0.075).abs() < 1e-12);
+        let ccw = AzimuthTiming {
+            spin: Spin::Ccw,
+            ..a
+        };
+        assert!((ccw.offset(DVec3::new(0.0, 1.0, 0.0), 0.1) - 0.075).abs() < 1e-12);
+    }
+
+    #[test]
     fn bad_files_are_named_errors() {
         let cases = [
             ("sensor: [", "not a valid rig file"),
@@ -492,6 +568,14 @@ mod tests {
             ),
             (
                 "sensor:\n  cameras:\n    - {label: a, topic: /a}\ningest:\n  lidar_topc: /x\n",
+                "not a valid rig file",
+            ),
+            (
+                "sensor:\n  cameras:\n    - {label: a, topic: /a}\ningest:\n  azimuth_timing: {spin: cw, period: 0}\n",
+                "azimuth_timing.period",
+            ),
+            (
+                "sensor:\n  cameras:\n    - {label: a, topic: /a}\ningest:\n  azimuth_timing: {spin: left}\n",
                 "not a valid rig file",
             ),
             (

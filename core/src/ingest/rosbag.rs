@@ -544,6 +544,8 @@ pub async fn ingest_bag(
     }
 
     // ---- clouds as they come: without per-point time, without ring ---------------------------------
+    // Set when untimed clouds are timed from their azimuth: seconds per turn.
+    let mut azimuth_period = None;
     if ix.untimed > 0 {
         // A cloud without per-point times stands for the sweep period around its stamp: the median
         // interval between stamps.
@@ -560,19 +562,53 @@ pub async fn ingest_bag(
             .filter(|&d| d > 0.0)
             .collect();
         d.sort_by(f64::total_cmp);
-        let period = d.get(d.len() / 2).copied().unwrap_or(0.1);
-        for s in ix.sweeps.iter_mut().filter(|s| !s.timed) {
-            (s.start, s.end) = (s.start - 0.5 * period, s.start + 0.5 * period);
+        let median = d.get(d.len() / 2).copied().unwrap_or(0.1);
+        match &ing.azimuth_timing {
+            None => {
+                for s in ix.sweeps.iter_mut().filter(|s| !s.timed) {
+                    (s.start, s.end) = (s.start - 0.5 * median, s.start + 0.5 * median);
+                }
+                notices.push(format!(
+                    "{} of {} sweeps on '{}' have no per-point time: taken as already motion-compensated \
+                     to their header stamp (deskewing moves them rigidly to each image's time); each stands \
+                     for {:.3} s around its stamp (the median interval); a spinning lidar's points can be \
+                     timed from their azimuth instead (ingest.azimuth_timing in the rig file)",
+                    ix.untimed,
+                    ix.sweeps.len(),
+                    ing.lidar_topic,
+                    median
+                ));
+            }
+            Some(a) => {
+                let period = a.period.unwrap_or(median);
+                azimuth_period = Some(period);
+                for s in ix.sweeps.iter_mut().filter(|s| !s.timed) {
+                    s.end = s.start + period;
+                }
+                notices.push(format!(
+                    "{} of {} sweeps on '{}' have no per-point time: each point timed from its azimuth \
+                     (ingest.azimuth_timing: turning {} from {}° at the header stamp, {:.4} s a turn{})",
+                    ix.untimed,
+                    ix.sweeps.len(),
+                    ing.lidar_topic,
+                    match a.spin {
+                        super::config::Spin::Ccw => "counter-clockwise",
+                        super::config::Spin::Cw => "clockwise",
+                    },
+                    a.start_azimuth_deg,
+                    period,
+                    match a.period {
+                        Some(_) => ", as the rig file says",
+                        // Slower than any common spinning lidar: the bag likely keeps only some sweeps.
+                        None if median > 0.25 => {
+                            ": the median interval between stamps, longer than common lidars turn; set \
+                             ingest.azimuth_timing.period if the bag keeps only some sweeps"
+                        }
+                        None => ": the median interval between stamps",
+                    }
+                ));
+            }
         }
-        notices.push(format!(
-            "{} of {} sweeps on '{}' have no per-point time: taken as already motion-compensated to their \
-             header stamp (deskewing moves them rigidly to each image's time); each stands for {:.3} s \
-             around its stamp (the median interval)",
-            ix.untimed,
-            ix.sweeps.len(),
-            ing.lidar_topic,
-            period
-        ));
     }
     if ix.ringless > 0 {
         notices.push(format!(
@@ -764,6 +800,7 @@ pub async fn ingest_bag(
                     kf,
                     ring_grid,
                     ing.min_range,
+                    ing.azimuth_timing.as_ref().zip(azimuth_period),
                     &file,
                 )
                 .await?;
@@ -980,17 +1017,23 @@ async fn write_keyframe(
     kf: Pending,
     ring_grid: Option<(usize, usize)>,
     min_range: f64,
+    azimuth_timing: Option<(&super::config::AzimuthTiming, f64)>,
     file: &str,
 ) -> Result<(), IngestError> {
     let k = kf.k;
     let name = format!("{k:05}");
     let scan = kf.got_sweep.expect("complete");
     let stamp = secs(scan.stamp);
-    // A cloud without per-point time is taken as motion-compensated to its stamp.
-    let rel_times = scan
-        .times
-        .clone()
-        .unwrap_or_else(|| vec![0.0; scan.positions.len()]);
+    // A cloud without per-point time is timed from its azimuth where the rig file says how the lidar
+    // turns, else taken as motion-compensated to its stamp.
+    let rel_times = scan.times.clone().unwrap_or_else(|| match azimuth_timing {
+        Some((a, period)) => scan
+            .positions
+            .iter()
+            .map(|&p| a.offset(p, period))
+            .collect(),
+        None => vec![0.0; scan.positions.len()],
+    });
     let abs_times: Vec<f64> = rel_times.iter().map(|&r| stamp + r).collect();
     // Beam and column of each point: the cloud's rings and the rig's azimuth step, or, for a cloud
     // without rings, an angular grid fitted to this sweep.
