@@ -504,3 +504,21 @@ fn a_laz_layer_larger_than_the_file_is_an_error_not_a_4gb_allocation() {
         .to_string();
     assert!(e.contains("bytes of layers"), "{e}");
 }
+
+/// Corrupt arithmetic-coded LAZ data on which the laz decoder itself panics (an index out of bounds, laz-rs
+/// issue #43; the fuzz target's fourth find) is an error naming the file, not a crash.
+#[test]
+fn a_laz_whose_decoder_panics_is_an_error_naming_the_file() {
+    let known = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../fuzz/seeds/scan_file/laz-decoder-panic"
+    );
+    let e = read_scan(Path::new(known), None, None)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        e.contains("laz-decoder-panic") && e.contains("corrupt compressed point data"),
+        "{e}"
+    );
+}

@@ -485,9 +485,25 @@ fn read_with(
             // Batches of at most 16 MiB: the record length comes from the file (up to 64 KiB a point).
             let per_batch = ((16u64 << 20) / batch.record_len().max(1) as u64).clamp(1, 1 << 16);
             loop {
-                let n = r
-                    .fill_points(per_batch, &mut batch)
-                    .map_err(|e| err(path, e.to_string()))?;
+                // The LAZ decoder panics on some corrupt arithmetic-coded data (an index out of bounds;
+                // laz-rs issue #43, open): caught here and reported like its errors.
+                let n = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    r.fill_points(per_batch, &mut batch)
+                }))
+                .map_err(|payload| {
+                    let detail = payload
+                        .downcast_ref::<&str>()
+                        .map(|s| s.to_string())
+                        .or_else(|| payload.downcast_ref::<String>().cloned())
+                        .unwrap_or_else(|| "panic".into());
+                    err(
+                        path,
+                        format!(
+                            "corrupt compressed point data after {read} points (the LAZ decoder failed: {detail})"
+                        ),
+                    )
+                })?
+                .map_err(|e| err(path, e.to_string()))?;
                 if n == 0 {
                     break;
                 }
