@@ -4,7 +4,7 @@
 #   scripts/fuzz.sh --smoke [TARGET ...]    CI: every target built once, then each run for
 #                                           SILVR_FUZZ_SMOKE_SECS (default 4) seconds
 #   targets: cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar
-#            npz mcap http_head kitti_text ros1_bag ros1_definition rosbag2_metadata scan_file
+#            npz mcap http_head kitti_text ros1_bag ros1_definition rosbag2_metadata rosbag2_db3 scan_file
 # Runs on stable Rust with `--sanitizer none` (the parsers are safe Rust: the fuzzer hunts panics, hangs,
 # overflow checks — debug assertions are on — and runaway allocation, capped by -rss_limit_mb). Installs
 # cargo-fuzz when missing. Seeds: fuzz/seeds/<target> (committed); the growing corpus and any crash
@@ -12,7 +12,7 @@
 # or when a target does not build (2).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-all=(cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar npz mcap http_head kitti_text ros1_bag ros1_definition rosbag2_metadata scan_file)
+all=(cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar npz mcap http_head kitti_text ros1_bag ros1_definition rosbag2_metadata rosbag2_db3 scan_file)
 smoke=0
 if [ "${1:-}" = --smoke ]; then
   smoke=1
