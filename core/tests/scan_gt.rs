@@ -505,20 +505,22 @@ fn a_laz_layer_larger_than_the_file_is_an_error_not_a_4gb_allocation() {
     assert!(e.contains("bytes of layers"), "{e}");
 }
 
-/// Corrupt arithmetic-coded LAZ data on which the laz decoder itself panics (an index out of bounds, laz-rs
-/// issue #43; the fuzz target's fourth find) is an error naming the file, not a crash.
+/// Corrupt LAZ files on which the las/laz readers themselves panic are errors naming the file, not crashes:
+/// corrupt arithmetic-coded data (an index out of bounds in the decoder, laz-rs issue #43; the fuzz
+/// target's fourth find) and a LASzip VLR listing no items (a panic while the reader is made; the fifth).
 #[test]
-fn a_laz_whose_decoder_panics_is_an_error_naming_the_file() {
-    let known = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../fuzz/seeds/scan_file/laz-decoder-panic"
-    );
-    let e = read_scan(Path::new(known), None, None)
-        .err()
-        .unwrap()
-        .to_string();
-    assert!(
-        e.contains("laz-decoder-panic") && e.contains("corrupt compressed point data"),
-        "{e}"
-    );
+fn lazs_whose_readers_panic_are_errors_naming_the_file() {
+    for (name, says) in [
+        (
+            "laz-decoder-panic",
+            "corrupt LAS/LAZ data: the reader failed decoding after 0 points",
+        ),
+        ("laz-no-items", "lists no point items"),
+    ] {
+        let known = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../fuzz/seeds/scan_file")
+            .join(name);
+        let e = read_scan(&known, None, None).err().unwrap().to_string();
+        assert!(e.contains(name) && e.contains(says), "{e}");
+    }
 }

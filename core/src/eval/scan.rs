@@ -337,6 +337,10 @@ fn check_laz_layers(
         pos += 54 + body_len as u64;
     }
     let Some(items) = items else { return Ok(()) };
+    // laz 0.13 expects at least one item (a panic otherwise; the fuzz target's fifth find).
+    if items.is_empty() {
+        return Err("the LASzip VLR lists no point items (corrupt file)".into());
+    }
     let mut first_point = 0u64;
     let mut layers = 0u64;
     for item in &items {
@@ -372,6 +376,22 @@ fn check_laz_layers(
         index += 1;
     }
     Ok(())
+}
+
+/// Runs a third-party reader's `f`, turning its panic (the las and laz crates panic on some corrupt files)
+/// into an error naming the file and what was being done.
+fn caught<T>(path: &Path, doing: &str, f: impl FnOnce() -> T) -> Result<T, ScanError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).map_err(|payload| {
+        let detail = payload
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "panic".into());
+        err(
+            path,
+            format!("corrupt LAS/LAZ data: the reader failed {doing} ({detail})"),
+        )
+    })
 }
 
 /// What was read: the cloud (in the map's frame when a transform was given) and notes for the report.
@@ -474,10 +494,10 @@ fn read_with(
                 Input::Bytes(b, _) => check_las_header(&mut std::io::Cursor::new(b)),
             }
             .map_err(|e| err(path, e))?;
-            let mut r = match input {
+            let mut r = caught(path, "reading the header", || match input {
                 Input::File(p) => las::Reader::from_path(p),
                 Input::Bytes(b, _) => las::Reader::new(std::io::Cursor::new(b.to_vec())),
-            }
+            })?
             .map_err(|e| err(path, e.to_string()))?;
             let total = r.header().number_of_points();
             let mut sink = Sink::new(voxel, total, threshold);
@@ -486,22 +506,9 @@ fn read_with(
             let per_batch = ((16u64 << 20) / batch.record_len().max(1) as u64).clamp(1, 1 << 16);
             loop {
                 // The LAZ decoder panics on some corrupt arithmetic-coded data (an index out of bounds;
-                // laz-rs issue #43, open): caught here and reported like its errors.
-                let n = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                // laz-rs issue #43, open): caught and reported like its errors.
+                let n = caught(path, &format!("decoding after {read} points"), || {
                     r.fill_points(per_batch, &mut batch)
-                }))
-                .map_err(|payload| {
-                    let detail = payload
-                        .downcast_ref::<&str>()
-                        .map(|s| s.to_string())
-                        .or_else(|| payload.downcast_ref::<String>().cloned())
-                        .unwrap_or_else(|| "panic".into());
-                    err(
-                        path,
-                        format!(
-                            "corrupt compressed point data after {read} points (the LAZ decoder failed: {detail})"
-                        ),
-                    )
                 })?
                 .map_err(|e| err(path, e.to_string()))?;
                 if n == 0 {
