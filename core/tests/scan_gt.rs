@@ -507,7 +507,8 @@ fn a_laz_layer_larger_than_the_file_is_an_error_not_a_4gb_allocation() {
 
 /// Corrupt LAZ files on which the las/laz readers themselves panic are errors naming the file, not crashes:
 /// corrupt arithmetic-coded data (an index out of bounds in the decoder, laz-rs issue #43; the fuzz
-/// target's fourth find) and a LASzip VLR listing no items (a panic while the reader is made; the fifth).
+/// target's fourth find) and a LASzip VLR listing no items (a panic while the reader is made; the fifth);
+/// and an extended VLR stating ~8 EB, which the las crate reserved (an abort; the sixth).
 #[test]
 fn lazs_whose_readers_panic_are_errors_naming_the_file() {
     for (name, says) in [
@@ -516,6 +517,7 @@ fn lazs_whose_readers_panic_are_errors_naming_the_file() {
             "corrupt LAS/LAZ data: the reader failed decoding after 0 points",
         ),
         ("laz-no-items", "lists no point items"),
+        ("las-evlr-length-oom", "extended VLR 0"),
     ] {
         let known = Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("../fuzz/seeds/scan_file")
