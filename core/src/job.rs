@@ -191,6 +191,8 @@ pub struct UncertaintySummary {
     pub unconstrained_log_std: f32,
     /// Points of the cloud that read the prior (unconstrained).
     pub unconstrained: usize,
+    /// Σ of the Fisher diagonals over every cell, colour and depth (the pass's aggregate).
+    pub fisher_totals: [f64; 2],
 }
 
 /// The read-outs on held-out lidar returns the calibration did not see.
@@ -199,6 +201,36 @@ pub struct HeldOutCheck {
     pub returns: usize,
     pub raw: Vec<Option<uncertainty::reliability::Reliability>>,
     pub calibrated: Vec<Option<uncertainty::reliability::Reliability>>,
+}
+
+/// The uncertainty pass in a few numbers ([`JobSummary::uncertainty_brief`]).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
+pub struct UncertaintyBrief {
+    /// Calibration factor per read-out (colour, depth, combined); 1 when uncalibrated.
+    pub factors: [f64; 3],
+    /// Median raw Laplace σ (k = 1) per read-out on the held-out lidar returns (metres), where checked.
+    pub raw_median_sigma_m: [Option<f64>; 3],
+    /// The prior's σ (metres): `(prior / σ)² − 1` is the Fisher's weight against the prior's.
+    pub prior_sigma_m: f64,
+    /// Σ of the Fisher diagonals over every cell, colour and depth.
+    pub fisher_totals: [f64; 2],
+}
+
+impl UncertaintyBrief {
+    pub fn of(u: &UncertaintySummary) -> Self {
+        let mut raw = [None; 3];
+        if let Some(h) = &u.held_out_check {
+            for (slot, r) in raw.iter_mut().zip(&h.raw) {
+                *slot = r.as_ref().map(|r| r.median_sigma_m);
+            }
+        }
+        Self {
+            factors: u.calibration.factor,
+            raw_median_sigma_m: raw,
+            prior_sigma_m: u.prior_sigma_m,
+            fisher_totals: u.fisher_totals,
+        }
+    }
 }
 
 /// What a finished run measured (also written as `train.json`).
@@ -223,6 +255,11 @@ pub struct JobSummary {
     pub render_rays_per_s: Option<f64>,
     pub export_rays_per_s: Option<f64>,
     pub uncertainty_s: Option<f64>,
+    /// The uncertainty pass in brief (the full summary is `uncertainty`, not serialised): what the
+    /// browser's run is compared with, since a briefly trained field's calibrated σ all read the prior
+    /// while these follow the Fisher the pass accumulated.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub uncertainty_brief: Option<UncertaintyBrief>,
     #[serde(skip)]
     pub uncertainty: Option<UncertaintySummary>,
     #[serde(skip)]
@@ -463,6 +500,7 @@ impl TrainJob {
             render_rays_per_s: (rendered > 0).then(|| rendered as f64 / render_s),
             export_rays_per_s: (opts.export_rays > 0).then(|| opts.export_rays as f64 / export_s),
             uncertainty_s: uncertainty.as_ref().map(|u| u.seconds),
+            uncertainty_brief: uncertainty.as_ref().map(UncertaintyBrief::of),
             uncertainty,
             exported,
         };
@@ -549,6 +587,7 @@ pub async fn uncertainty_pass(
         prior_sigma_m,
         unconstrained_log_std,
         unconstrained: 0,
+        fisher_totals: [&fisher.colour, &fisher.depth].map(|v| v.iter().map(|&x| x as f64).sum()),
     };
     if let Some(cloud) = cloud {
         uncertainty::annotate_cloud(&fisher, cloud);

@@ -398,6 +398,8 @@ pub struct TrainResult {
     pub threshold: Option<f32>,
     /// `log_std_combined` quantiles (5, 25, 50, 75, 95 %) of the exported points.
     pub log_std_quantiles: Vec<f32>,
+    /// The uncertainty pass's calibration factors and raw σ on held-out returns (as `train.json` has them).
+    pub uncertainty: Option<silvr_core::job::UncertaintyBrief>,
     /// Output names the worker holds.
     pub outputs: Vec<String>,
 }

@@ -403,6 +403,7 @@ async fn run_inner(
         kept: summary.uncertainty.as_ref().map(|u| u.kept),
         threshold: summary.uncertainty.as_ref().map(|u| u.threshold),
         log_std_quantiles: Vec::new(),
+        uncertainty: summary.uncertainty_brief.clone(),
         outputs: sink.0.keys().cloned().collect(),
     };
     if let Some(bytes) = sink.0.get("points.ply") {
