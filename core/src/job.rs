@@ -518,9 +518,18 @@ fn put_ply(sink: &mut dyn Sink, name: &str, cloud: &PointCloud) -> Result<(), Jo
     sink.put(name, &bytes)
 }
 
-/// `images/cam_front/00005.png` → `images_cam_front_00005`.
+/// `images/cam_front/00005.png` → `images_cam_front_00005`: an output's name from its image's identity in
+/// its dataset. A name reached through another folder (`../ds/images/cam/00005.png`, as refined poses name
+/// the frames) keeps its part from `images/` on, and `.`/`..` are dropped, so that no output is a hidden
+/// file (`.._ds_images_…`) or names where it was read from.
 pub fn stem(name: &str) -> String {
-    name.replace(['/', '\\'], "_")
+    let parts: Vec<&str> = name
+        .split(['/', '\\'])
+        .filter(|p| !p.is_empty() && *p != "." && *p != "..")
+        .collect();
+    let from = parts.iter().rposition(|p| *p == "images").unwrap_or(0);
+    parts[from..]
+        .join("_")
         .trim_end_matches(".png")
         .trim_end_matches(".jpg")
         .to_string()
@@ -653,4 +662,22 @@ pub async fn uncertainty_image(
         })
         .collect();
     Ok(crate::dataset::png_gray8(v.width, v.height, &px))
+}
+
+#[cfg(test)]
+mod stem_tests {
+    use super::stem;
+
+    #[test]
+    fn output_names_come_from_the_images_identity_never_hidden() {
+        assert_eq!(stem("images/cam_front/00005.png"), "images_cam_front_00005");
+        assert_eq!(
+            stem("../ds/images/cam_left/00000.png"),
+            "images_cam_left_00000"
+        );
+        assert_eq!(stem("./images/a/1.jpg"), "images_a_1");
+        assert_eq!(stem("photos/IMG_1.jpg"), "photos_IMG_1");
+        assert_eq!(stem("../../x/y.png"), "x_y");
+        assert!(!stem("../.hidden/images/c/1.png").starts_with('.'));
+    }
 }

@@ -300,11 +300,13 @@ fn check_las_header(r: &mut (impl Read + Seek)) -> Result<(), String> {
         }
     }
     let table = u64::try_from(table).ok().filter(|&t| t > data);
+    let mut table_chunks = None;
     if let Some(b) = match table {
         Some(t) => at(t, 8)?,
         None => None,
     } {
         let chunks = u32::from_le_bytes([b[4], b[5], b[6], b[7]]) as u64;
+        table_chunks = Some(chunks);
         let room = table.unwrap_or(0).saturating_sub(data + 8);
         if chunks > room {
             return Err(format!(
@@ -312,72 +314,134 @@ fn check_las_header(r: &mut (impl Read + Seek)) -> Result<(), String> {
             ));
         }
     }
-    // The point data ends at the chunk table, else at the first extended VLR (LAS 1.4), else the file's end.
-    let mut end = table.unwrap_or(len).min(len);
-    if table.is_none() && (h[24] > 1 || h[25] >= 4) {
-        if let Some(b) = at(235, 8)? {
-            let evlr = u64::from_le_bytes(b.try_into().unwrap_or([0; 8]));
-            if evlr > data {
-                end = end.min(evlr);
-            }
-        }
-    }
-    let header_size = u16::from_le_bytes([h[94], h[95]]) as u64;
+    // The las crate reads its version's fixed header, then any padding up to the stated header size: the
+    // VLRs start after whichever is longer (a 1.4 file stating 256 bytes still has its VLRs at 375; the
+    // fuzz target's seventh find hid its LASzip VLR from this check that way).
+    let version_size = match (h[24], h[25]) {
+        (1, 0..=2) => 227,
+        (1, 3) => 235,
+        _ => 375,
+    };
+    let header_size = (u16::from_le_bytes([h[94], h[95]]) as u64).max(version_size);
     let n_vlrs = u32::from_le_bytes([h[100], h[101], h[102], h[103]]);
-    check_laz_layers(&mut at, header_size, n_vlrs, data, end)
+    check_laz_layers(
+        &mut at,
+        LazLayout {
+            header_size,
+            n_vlrs,
+            record_len,
+            count,
+            data,
+            table_chunks,
+            len,
+        },
+    )
 }
 
 /// Layered (LAS 1.4, point formats 6–10) LAZ chunks state each layer's byte count, and laz 0.13 sizes its
 /// buffer from it before reading (a 1 KB file reserved 4 GB; found by the `scan_file` fuzz target). Walks
 /// the chunks (each one: the first point raw, a point count, the layer sizes, the layers) and refuses any
 /// whose layers would run past the point data.
-fn check_laz_layers(
-    at: &mut impl FnMut(u64, usize) -> Result<Option<Vec<u8>>, String>,
+/// What [`check_laz_layers`] needs of the header: where the VLRs start and how many, the point record's
+/// length and count, where the point data starts, the chunk table's count where there is one, the file's
+/// length.
+struct LazLayout {
     header_size: u64,
     n_vlrs: u32,
+    record_len: u64,
+    count: u64,
     data: u64,
-    end: u64,
+    table_chunks: Option<u64>,
+    len: u64,
+}
+
+fn check_laz_layers(
+    at: &mut impl FnMut(u64, usize) -> Result<Option<Vec<u8>>, String>,
+    f: LazLayout,
 ) -> Result<(), String> {
     use laz::LazItemType as T;
+    let LazLayout {
+        header_size,
+        n_vlrs,
+        record_len,
+        count,
+        data,
+        table_chunks,
+        len,
+    } = f;
     // Find the LASzip VLR (user "laszip encoded", record 22204) among the header's VLRs.
     let mut pos = header_size;
-    let mut items = None;
+    let mut vlr = None;
     for _ in 0..n_vlrs.min(1 << 16) {
         let Some(v) = at(pos, 54)? else { break };
         let body_len = u16::from_le_bytes([v[20], v[21]]) as usize;
         let record = u16::from_le_bytes([v[18], v[19]]);
         if v[2..16].starts_with(b"laszip encoded") && record == 22204 {
             if let Some(body) = at(pos + 54, body_len)? {
-                items = laz::LazVlr::from_buffer(&body)
-                    .ok()
-                    .map(|vlr| vlr.items().clone());
+                vlr = laz::LazVlr::from_buffer(&body).ok();
             }
             break;
         }
         pos += 54 + body_len as u64;
     }
-    let Some(items) = items else { return Ok(()) };
+    let Some(vlr) = vlr else { return Ok(()) };
+    let items = vlr.items();
     // laz 0.13 expects at least one item (a panic otherwise; the fuzz target's fifth find).
     if items.is_empty() {
         return Err("the LASzip VLR lists no point items (corrupt file)".into());
     }
+    // Each item has its type's size, and together they make the header's point record (what LASzip
+    // itself requires; laz 0.13 trusts both and reads past them: the fuzz target's eighth find).
     let mut first_point = 0u64;
     let mut layers = 0u64;
-    for item in &items {
-        first_point += item.size() as u64;
-        layers += match item.item_type() {
-            T::Point14 => 9,
-            T::RGB14 | T::WavePacket14 => 1,
-            T::RGBNIR14 => 2,
-            T::Byte14(n) => n as u64,
-            // Point-wise (pre-1.4) items have no layers.
-            _ => return Ok(()),
+    let mut layered = true;
+    for item in items {
+        let (size, item_layers) = match item.item_type() {
+            T::Point10 => (20, None),
+            T::GpsTime => (8, None),
+            T::RGB12 => (6, None),
+            T::WavePacket13 => (29, None),
+            T::Byte(n) => (n, None),
+            T::Point14 => (30, Some(9)),
+            T::RGB14 => (6, Some(1)),
+            T::RGBNIR14 => (8, Some(2)),
+            T::WavePacket14 => (29, Some(1)),
+            T::Byte14(n) => (n, Some(n as u64)),
         };
+        if item.size() != size {
+            return Err(format!(
+                "the LASzip VLR's {:?} item is {} bytes; that item is {size} (corrupt file)",
+                item.item_type(),
+                item.size()
+            ));
+        }
+        first_point += size as u64;
+        match item_layers {
+            Some(n) => layers += n,
+            None => layered = false,
+        }
     }
+    if first_point != record_len {
+        return Err(format!(
+            "the LASzip items make {first_point}-byte points, but the header's records are {record_len} \
+             bytes (corrupt file)"
+        ));
+    }
+    // Point-wise (pre-1.4) items have no layers.
+    if !layered {
+        return Ok(());
+    }
+    // As many chunks as laz will read: the table's count (variable-size chunks) or the points over the
+    // chunk size. Each may reach no further than the file: laz reads on past the chunk table (a file of
+    // one-point chunks had it read the table as a chunk stating 3.7 GB; the fuzz target's ninth find).
+    let expected = if vlr.uses_variable_size_chunks() {
+        table_chunks.unwrap_or(0)
+    } else {
+        count.div_ceil(u64::from(vlr.chunk_size().max(1)))
+    };
     let head = first_point + 4 + 4 * layers;
     let mut chunk_at = data + 8;
-    let mut index = 0u64;
-    while chunk_at < end {
+    for index in 0..expected {
         let Some(b) = at(chunk_at + first_point + 4, 4 * layers as usize)? else {
             break;
         };
@@ -385,15 +449,14 @@ fn check_laz_layers(
             .chunks_exact(4)
             .map(|s| u32::from_le_bytes([s[0], s[1], s[2], s[3]]) as u64)
             .sum();
-        let left = end.saturating_sub(chunk_at + head);
+        let left = len.saturating_sub(chunk_at + head);
         if sizes > left {
             return Err(format!(
                 "LAZ chunk {index} at byte {chunk_at} states {sizes} bytes of layers, but only {left} \
-                 bytes of point data follow (corrupt file)"
+                 bytes of the file follow (corrupt file)"
             ));
         }
         chunk_at += head + sizes;
-        index += 1;
     }
     Ok(())
 }
