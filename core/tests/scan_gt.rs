@@ -511,7 +511,8 @@ fn a_laz_layer_larger_than_the_file_is_an_error_not_a_4gb_allocation() {
 /// and an extended VLR stating ~8 EB, which the las crate reserved (an abort; the sixth). Three more whose
 /// layer sizes laz 0.13 reserved (GBs): a 1.4 header stating 256 bytes, which hid its LASzip VLR from the
 /// layer check; an item of the wrong size; one-point chunks read on past the chunk table; variable-size
-/// chunks with a table of none (the first chunk is read all the same).
+/// chunks with a table of none (the first chunk is read all the same); a point-wise file, whose one chunk
+/// starts without the table's offset.
 #[test]
 fn lazs_whose_readers_panic_are_errors_naming_the_file() {
     for (name, says) in [
@@ -525,6 +526,7 @@ fn lazs_whose_readers_panic_are_errors_naming_the_file() {
         ("laz-item-size-oom", "RGB14 item is 518 bytes"),
         ("laz-one-point-chunks-oom", "LAZ chunk 1 at byte"),
         ("laz-variable-chunks-empty-table-oom", "LAZ chunk 0 at byte"),
+        ("laz-point-wise-layered-oom", "LAZ chunk 0 at byte 727"),
     ] {
         let known = Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("../fuzz/seeds/scan_file")

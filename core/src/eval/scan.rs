@@ -372,6 +372,8 @@ fn check_laz_layers(
     // Find the LASzip VLR (user "laszip encoded", record 22204) among the header's VLRs.
     let mut pos = header_size;
     let mut vlr = None;
+    // LASzip's compressor: 1 point-wise (one chunk, no chunk-table offset), 2 and 3 chunked.
+    let mut compressor = 0u16;
     for _ in 0..n_vlrs.min(1 << 16) {
         let Some(v) = at(pos, 54)? else { break };
         let body_len = u16::from_le_bytes([v[20], v[21]]) as usize;
@@ -379,6 +381,7 @@ fn check_laz_layers(
         if v[2..16].starts_with(b"laszip encoded") && record == 22204 {
             if let Some(body) = at(pos + 54, body_len)? {
                 vlr = laz::LazVlr::from_buffer(&body).ok();
+                compressor = u16::from_le_bytes([body[0], body[1]]);
             }
             break;
         }
@@ -431,23 +434,33 @@ fn check_laz_layers(
     if !layered {
         return Ok(());
     }
-    // As many chunks as laz will read: the table's count (variable-size chunks) or the points over the
-    // chunk size. Each may reach no further than the file: laz reads on past the chunk table (a file of
-    // one-point chunks had it read the table as a chunk stating 3.7 GB; the fuzz target's ninth find).
-    let expected = if vlr.uses_variable_size_chunks() {
-        // The first chunk is read even where the table lists none (a chunk size of 0 means variable; the
-        // tenth find had a table of 0 chunks).
-        table_chunks.unwrap_or(0).max(u64::from(count > 0))
+    // Every chunk laz may read, each within the file. laz reads chunks one after another (each starts
+    // where the previous one's layers end) while points remain, and it bounds a chunk by the chunk size,
+    // by the table's point counts or by the count inside the chunk, depending on the file. So the walk
+    // goes on while any of those says more chunks follow: the chunk size's or the table's number of
+    // chunks (at least one), and until the chunks' own counts add up to the header's. A consistent file
+    // agrees on all three; an inconsistent one may be refused where laz would have read it. Finds of the
+    // fuzz target: one-point chunks read on past the chunk table (9th), a table of no chunks (10th), a
+    // point-wise file, whose one chunk starts without the table's offset (11th).
+    let point_wise = compressor == 1;
+    let by_rule = if point_wise {
+        1
+    } else if vlr.uses_variable_size_chunks() {
+        table_chunks.unwrap_or(0)
     } else {
         count.div_ceil(u64::from(vlr.chunk_size().max(1)))
-    };
+    }
+    .max(u64::from(count > 0));
     let head = first_point + 4 + 4 * layers;
-    let mut chunk_at = data + 8;
-    for index in 0..expected {
-        let Some(b) = at(chunk_at + first_point + 4, 4 * layers as usize)? else {
+    let mut chunk_at = if point_wise { data } else { data + 8 };
+    let mut points = 0u64;
+    let mut index = 0u64;
+    while index < by_rule || points < count {
+        let Some(b) = at(chunk_at + first_point, 4 + 4 * layers as usize)? else {
             break;
         };
-        let sizes: u64 = b
+        let in_chunk = u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as u64;
+        let sizes: u64 = b[4..]
             .chunks_exact(4)
             .map(|s| u32::from_le_bytes([s[0], s[1], s[2], s[3]]) as u64)
             .sum();
@@ -459,6 +472,8 @@ fn check_laz_layers(
             ));
         }
         chunk_at += head + sizes;
+        points = points.saturating_add(in_chunk.max(1));
+        index += 1;
     }
     Ok(())
 }
