@@ -381,7 +381,9 @@ fn check_laz_layers(
         if v[2..16].starts_with(b"laszip encoded") && record == 22204 {
             if let Some(body) = at(pos + 54, body_len)? {
                 vlr = laz::LazVlr::from_buffer(&body).ok();
-                compressor = u16::from_le_bytes([body[0], body[1]]);
+                if let [a, b, ..] = body[..] {
+                    compressor = u16::from_le_bytes([a, b]);
+                }
             }
             break;
         }
