@@ -363,10 +363,6 @@ fn check_las_header(r: &mut (impl Read + Seek)) -> Result<(), String> {
     )
 }
 
-/// Layered (LAS 1.4, point formats 6–10) LAZ chunks state each layer's byte count, and laz 0.13 sizes its
-/// buffer from it before reading (a 1 KB file reserved 4 GB; found by the `scan_file` fuzz target). Walks
-/// the chunks (each one: the first point raw, a point count, the layer sizes, the layers) and refuses any
-/// whose layers would run past the point data.
 /// What [`check_laz_layers`] needs of the header: where the VLRs start and how many, the point record's
 /// length and count, where the point data starts, the chunk table's count where there is one, the file's
 /// length.
@@ -380,6 +376,10 @@ struct LazLayout {
     len: u64,
 }
 
+/// Layered (LAS 1.4, point formats 6–10) LAZ chunks state each layer's byte count, and laz 0.13 sizes its
+/// buffer from it before reading (a 1 KB file reserved 4 GB; found by the `scan_file` fuzz target). Checks
+/// the LASzip items against the point record, then walks the chunks (each one: the first point raw, a point
+/// count, the layer sizes, the layers) and refuses any whose layers would run past the file.
 fn check_laz_layers(
     at: &mut impl FnMut(u64, usize) -> Result<Option<Vec<u8>>, String>,
     f: LazLayout,
@@ -509,11 +509,7 @@ fn check_laz_layers(
 /// into an error naming the file and what was being done.
 fn caught<T>(path: &Path, doing: &str, f: impl FnOnce() -> T) -> Result<T, ScanError> {
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).map_err(|payload| {
-        let detail = payload
-            .downcast_ref::<&str>()
-            .map(|s| s.to_string())
-            .or_else(|| payload.downcast_ref::<String>().cloned())
-            .unwrap_or_else(|| "panic".into());
+        let detail = crate::ingest::container::panic_message(payload.as_ref());
         err(
             path,
             format!("corrupt LAS/LAZ data: the reader failed {doing} ({detail})"),

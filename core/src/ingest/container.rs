@@ -234,3 +234,12 @@ pub(crate) trait MessageSource:
         Vec::new()
     }
 }
+
+/// The message of a caught panic (a third-party reader's, on a corrupt file), for the error that reports it.
+pub(crate) fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "panic".into())
+}

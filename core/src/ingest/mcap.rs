@@ -91,14 +91,9 @@ impl Iterator for McapSource {
             Ok(next) => next?,
             Err(payload) => {
                 self.failed = true;
-                let detail = payload
-                    .downcast_ref::<&str>()
-                    .map(|s| s.to_string())
-                    .or_else(|| payload.downcast_ref::<String>().cloned())
-                    .unwrap_or_else(|| "panic".into());
                 return Some(Err(BagError::ReaderPanic {
                     file: self.file.clone(),
-                    detail,
+                    detail: super::container::panic_message(payload.as_ref()),
                 }));
             }
         };
