@@ -125,8 +125,8 @@ impl UncertaintySummary {
 /// What σ means, in one sentence (the CLI's print and the report's uncertainty section).
 pub const SIGMA_MEANS: &str = "σ is the posterior standard deviation, in metres, of where the field puts a \
      surface point: the Laplace posterior of a perturbation field given every pixel and lidar return \
-     trained on, scaled by one factor per read-out so that 1σ covers 68 % of lidar returns held out of \
-     training";
+     trained on, with the spread of the point's own ray added in quadrature, each scaled by one factor \
+     per read-out so that 1σ and 2σ cover 68 % and 95 % of lidar returns held out of training";
 
 /// What the pass did, in metres: the rays it sampled and the observations the posterior stands for, the
 /// calibration, and the filter (`silvr uncertainty` and `silvr train` print the same).
@@ -171,7 +171,8 @@ pub fn print_summary(u: &job::UncertaintySummary, config: &UncertaintyConfig) {
     }
 }
 
-/// The run's calibration as printed: each read-out's factor and the coverage it reached.
+/// The run's calibration as printed: each read-out's factors (on the Laplace σ and on the ray spread) and
+/// the coverage it reached.
 pub fn calibration_line(c: &uncertainty::Calibration, prior_sigma_m: f64) -> String {
     if !c.is_calibrated() {
         return format!(
@@ -184,9 +185,10 @@ pub fn calibration_line(c: &uncertainty::Calibration, prior_sigma_m: f64) -> Str
         .enumerate()
         .map(|(i, m)| {
             format!(
-                "{} ×{:.3e} ({:.1} % within 1σ)",
+                "{} ×{:.3e}, spread ×{:.2} ({:.1} % within 1σ)",
                 m.name(),
                 c.factor[i],
+                c.spread[i],
                 100.0 * c.coverage[i]
             )
         })
@@ -419,7 +421,11 @@ pub fn add_raw_fields<'a>(cloud: &mut PointCloud, fisher_of: impl Fn(usize) -> O
         let Some(f) = fisher_of(id) else { continue };
         let idx: Vec<usize> = (0..n).filter(|&i| submap[i] == id).collect();
         let pts: Vec<glam::DVec3> = idx.iter().map(|&i| cloud.positions[i]).collect();
-        let u = f.read_out_metric(Posterior::Raw, &pts);
+        let mut u = f.read_out_metric(Posterior::Raw, &pts);
+        if let Some(all) = cloud.scalar(uncertainty::DEPTH_SPREAD_FIELD) {
+            let s: Vec<f32> = idx.iter().map(|&i| all[i]).collect();
+            u.fold_spread(&s, f.spread_factors(Posterior::Raw));
+        }
         for (k, m) in Modality::ALL.iter().enumerate() {
             for (j, &i) in idx.iter().enumerate() {
                 raw[k][i] = u.of(*m)[j];

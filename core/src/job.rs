@@ -562,6 +562,15 @@ pub async fn uncertainty_pass(
     } else {
         Default::default()
     };
+    // A cloud exported without its rays' spreads (by an older silvr) cannot carry it in its σ: the factors
+    // are then fitted without it too, or they would lean on a term its points lack.
+    let mut held = held;
+    if cloud
+        .as_ref()
+        .is_some_and(|c| c.scalar(uncertainty::DEPTH_SPREAD_FIELD).is_none())
+    {
+        held.spread_m.clear();
+    }
     // Fitted on every other return, checked on the rest.
     let (fit, check) = held.split();
     uncertainty::calibrate::calibrate(&mut fisher, &fit);

@@ -261,10 +261,11 @@ fn wgsl_training_matches_the_cpu_reference_over_a_run() {
     .unwrap();
     uncertainty::calibrate::calibrate(&mut f, &held);
     eprintln!(
-        "calibration on {} of {} held-out returns: factors {:?}, coverage {:?}",
+        "calibration on {} of {} held-out returns: factors {:?}, spread factors {:?}, coverage {:?}",
         held.residual_m.len(),
         held.available,
         f.calibration.factor,
+        f.calibration.spread,
         f.calibration.coverage
     );
     assert!(
@@ -278,7 +279,11 @@ fn wgsl_training_matches_the_cpu_reference_over_a_run() {
     let errors = &eval::GroundTruth::load(dataset)
         .unwrap()
         .surface_distances(&ev_c.reconstruction.positions);
-    let cal = f.read_out_metric(Posterior::Calibrated, pts).combined;
+    // The points' σ as the pass writes it: the field's read-out with each point's ray spread.
+    let mut annotated = ev_c.reconstruction.clone();
+    assert!(annotated.scalar(uncertainty::DEPTH_SPREAD_FIELD).is_some());
+    uncertainty::annotate_cloud(&f, &mut annotated);
+    let cal = annotated.scalar("log_std_combined").unwrap().to_vec();
     let r = reliability::reliability(&cal, errors, at, 10).unwrap();
     eprint!("{}", r.table("micro world, combined σ (calibrated)"));
     assert!(

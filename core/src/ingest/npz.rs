@@ -260,6 +260,19 @@ pub fn parse_npz(bytes: &[u8], name: &str, file: &str) -> Result<Array2, NpzErro
                             ),
                         ));
                     }
+                    // Deflate cannot expand past 1032:1 (zlib's technical notes): a declared size beyond
+                    // that of the compressed bytes present is a lie, refused before the array is reserved
+                    // (which the declared size would otherwise bound alone: a 1 KB file, 1 GiB reserved).
+                    let most = (csize as u64).saturating_mul(MAX_DEFLATE_RATIO) + 64;
+                    if usize_ > most {
+                        return Err(err(
+                            &inner,
+                            format!(
+                                "declares {usize_} bytes uncompressed from {csize} deflated, more than \
+                                 deflate can expand them to ({most})"
+                            ),
+                        ));
+                    }
                     let mut z = flate2::read::DeflateDecoder::new(data).take(usize_);
                     read_npy(&mut z, usize_, "its zip entry declares", &inner)
                 }
@@ -278,6 +291,9 @@ pub fn parse_npz(bytes: &[u8], name: &str, file: &str) -> Result<Array2, NpzErro
     }
     Err(err(file, format!("no {want} in the archive")))
 }
+
+/// Deflate's largest expansion: 258-byte matches coded in 2 bits each, 1032:1.
+const MAX_DEFLATE_RATIO: u64 = 1032;
 
 #[cfg(test)]
 mod tests {
@@ -371,6 +387,17 @@ mod tests {
         let e = parse_npz(&z, "data", "bomb.npz").unwrap_err().to_string();
         assert!(
             e.contains("bomb.npz/data.npy") && e.contains("needs more than the 872 bytes its zip"),
+            "{e}"
+        );
+        // An honest-looking header of 100 M values (800 MB, under the cap) declared as the entry's size
+        // over a few hundred deflated bytes: refused by deflate's ratio before 800 MB are reserved.
+        let big = npy("<f8", "(100000000,)", &[]);
+        let small_z = deflated([&big[..]]);
+        let z = zip_raw("data.npy", true, &small_z, (big.len() + 800_000_000) as u32);
+        let e = parse_npz(&z, "data", "r.npz").unwrap_err().to_string();
+        assert!(
+            e.starts_with("r.npz/data.npy: declares 800000128 bytes uncompressed from")
+                && e.contains("deflate can expand"),
             "{e}"
         );
         // Stored, the same claim is refused against the bytes present.

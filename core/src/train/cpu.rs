@@ -631,6 +631,8 @@ pub struct RenderedRay {
     pub expected_depth: f32,
     /// nerfacto's default depth: see [`median_depth`].
     pub median_depth: f32,
+    /// How far along the ray its termination is spread: see [`depth_spread`].
+    pub depth_spread: f32,
 }
 
 impl RenderedRay {
@@ -640,8 +642,38 @@ impl RenderedRay {
             out,
             expected_depth: expected_depth(&out, t_edges),
             median_depth: median_depth(weights, t_edges),
+            depth_spread: depth_spread(weights, t_edges),
         }
     }
+}
+
+/// The standard deviation of where the ray terminates, √(Σ wᵢ((tᵢ − μ)² + Δᵢ²/12) / Σ wᵢ) with μ the
+/// weighted mean, tᵢ and Δᵢ each interval's midpoint and length (its weight spread uniformly over it);
+/// 0 without weight. A point placed at the expected depth of a ray whose weight is split between two
+/// surfaces (a silhouette, foliage, glass) floats between them however well the field is constrained:
+/// this is how far off such a point may be, in the ray's units.
+pub fn depth_spread(weights: &[f32], t_edges: &[f32]) -> f32 {
+    let (mut w0, mut w1) = (0.0f64, 0.0f64);
+    for (i, &w) in weights.iter().enumerate() {
+        let mid = 0.5 * (t_edges[i] + t_edges[i + 1]) as f64;
+        w0 += w as f64;
+        w1 += w as f64 * mid;
+    }
+    if w0 <= 0.0 {
+        return 0.0;
+    }
+    let mu = w1 / w0;
+    let var: f64 = weights
+        .iter()
+        .enumerate()
+        .map(|(i, &w)| {
+            let (a, b) = (t_edges[i] as f64, t_edges[i + 1] as f64);
+            let mid = 0.5 * (a + b);
+            w as f64 * ((mid - mu).powi(2) + (b - a).powi(2) / 12.0)
+        })
+        .sum::<f64>()
+        / w0;
+    var.max(0.0).sqrt() as f32
 }
 
 /// SiLVR's expected depth Σwt / Σw, clipped to the ray's sampled range `t_edges` (far end without weight).
@@ -746,6 +778,19 @@ mod tests {
     /// The median depth is where the cumulative weight reaches ½, interpolated within the crossing
     /// sample: on a ray whose weight is split between a near and a far surface it sits on one of them,
     /// while the expected depth floats between; without ½ of the weight it is the far end.
+    #[test]
+    fn depth_spread_is_zero_on_one_thin_surface_and_half_the_gap_between_two() {
+        let edges = [1.0, 2.0, 2.0, 4.0, 4.0, 6.0];
+        // All the weight in a zero-length interval at 2: no spread.
+        assert_eq!(depth_spread(&[0.0, 1.0, 0.0, 0.0, 0.0], &edges), 0.0);
+        // Half at 2, half at 4: σ = 1 (the gap's half).
+        assert_eq!(depth_spread(&[0.0, 0.5, 0.0, 0.5, 0.0], &edges), 1.0);
+        // All in [4, 6]: uniform over 2, σ² = 4/12.
+        let s = depth_spread(&[0.0, 0.0, 0.0, 0.0, 0.7], &edges);
+        assert!((s - (4.0f32 / 12.0).sqrt()).abs() < 1e-6, "{s}");
+        assert_eq!(depth_spread(&[0.0; 5], &edges), 0.0);
+    }
+
     #[test]
     fn median_depth_sits_on_a_surface() {
         let edges = [1.0, 2.0, 3.0, 4.0, 5.0];

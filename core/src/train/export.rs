@@ -66,6 +66,10 @@ impl ExportDepth {
     }
 }
 
+/// The exported point's field holding its ray's [`depth_spread`](super::cpu::depth_spread) in metres,
+/// which the uncertainty read-out folds into each σ.
+pub const DEPTH_SPREAD_FIELD: &str = "depth_spread_m";
+
 /// Minimum accumulation of an exported point (SiLVR / nerfstudio).
 pub const EXPORT_MIN_ACCUMULATION: f32 = 0.98;
 
@@ -253,6 +257,7 @@ pub fn points_from(
     let mut colors = Vec::new();
     let mut normals = Vec::new();
     let mut acc = Vec::new();
+    let mut spread = Vec::new();
     for (ray, o) in rays.iter().zip(out) {
         let t = depth.of(o);
         if o.out.accumulation < EXPORT_MIN_ACCUMULATION || !t.is_finite() {
@@ -263,9 +268,11 @@ pub fn points_from(
         colors.push(o.out.rgb.map(to_u8));
         normals.push(Vec3::from(o.out.normal));
         acc.push(o.out.accumulation);
+        spread.push((o.depth_spread as f64 / frame.scale) as f32);
     }
     cloud.colors = Some(colors);
     cloud.normals = Some(normals);
     cloud.set_scalar("accumulation", acc);
+    cloud.set_scalar(DEPTH_SPREAD_FIELD, spread);
     cloud
 }

@@ -38,6 +38,7 @@ use serde::{Deserialize, Serialize};
 use crate::gpu::GpuError;
 use crate::train::cpu::TrainRay;
 use crate::train::data::{SceneFrame, TrainData};
+pub use crate::train::export::DEPTH_SPREAD_FIELD;
 use crate::train::{Engine, Mode, Trainer};
 
 /// How the uncertainty pass runs.
@@ -216,8 +217,8 @@ pub struct Fisher {
     pub calibration: Calibration,
 }
 
-/// Global factors k on the Laplace σ (by read-out: colour, depth, combined), fitted on held-out lidar
-/// returns; all 1 when uncalibrated.
+/// Global factors k on the Laplace σ and a on each point's ray spread (by read-out: colour, depth,
+/// combined), fitted on held-out lidar returns; all 1 when uncalibrated.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Calibration {
     pub factor: [f64; 3],
@@ -225,6 +226,14 @@ pub struct Calibration {
     pub returns: u64,
     /// Coverage the fit reached on them at 1σ (≈ 0.683 when it could).
     pub coverage: [f64; 3],
+    /// The factor a on the ray spread s in a point's σ = √(σ_k² + (a·s)²) ([`with_spread`]); 0 in files
+    /// calibrated before the spread was part of σ (`SILVRFI2`).
+    #[serde(default = "unit_spread")]
+    pub spread: [f64; 3],
+}
+
+fn unit_spread() -> [f64; 3] {
+    [1.0; 3]
 }
 
 impl Calibration {
@@ -232,6 +241,7 @@ impl Calibration {
         factor: [1.0; 3],
         returns: 0,
         coverage: [f64::NAN; 3],
+        spread: [1.0; 3],
     };
 
     pub fn is_calibrated(&self) -> bool {
@@ -315,6 +325,14 @@ impl Fisher {
         }
     }
 
+    /// The factors a on a point's ray spread, by read-out (colour, depth, combined).
+    pub fn spread_factors(&self, post: Posterior) -> [f64; 3] {
+        match post {
+            Posterior::Raw => [1.0; 3],
+            Posterior::Calibrated => self.calibration.spread,
+        }
+    }
+
     /// log10 of the posterior standard deviation (scene units) at a grid position: BayesRays' read-out,
     /// the variances of the cell's vertices interpolated with normalised squared trilinear weights.
     pub fn log_std(&self, m: Modality, post: Posterior, unit: [f32; 3]) -> f32 {
@@ -361,10 +379,13 @@ impl Fisher {
     }
 }
 
-const MAGIC: &[u8; 8] = b"SILVRFI2";
+const MAGIC: &[u8; 8] = b"SILVRFI3";
+/// The version before the spread factors: read with a = 0 (its σ had no spread) when calibrated.
+const MAGIC_V2: &[u8; 8] = b"SILVRFI2";
 /// Magic, cells, rays, lidar rays, λ, σ_c, σ_d, frame centre (3) and scale, factors (3), returns,
-/// coverages (3).
-const HEADER_BYTES: usize = 8 + 4 + 8 + 8 + 8 * 3 + 8 * 4 + 8 * 3 + 8 + 8 * 3;
+/// coverages (3), spread factors (3; not in version 2).
+const HEADER_BYTES: usize = 8 + 4 + 8 + 8 + 8 * 3 + 8 * 4 + 8 * 3 + 8 + 8 * 3 + 8 * 3;
+const HEADER_BYTES_V2: usize = HEADER_BYTES - 8 * 3;
 
 impl Fisher {
     /// A compact little-endian file (`uncertainty.bin`): the header ([`HEADER_BYTES`]), then the colour
@@ -385,7 +406,7 @@ impl Fisher {
             out.extend_from_slice(&v.to_le_bytes());
         }
         out.extend_from_slice(&c.returns.to_le_bytes());
-        for v in c.coverage {
+        for v in c.coverage.into_iter().chain(c.spread) {
             out.extend_from_slice(&v.to_le_bytes());
         }
         for v in self.colour.iter().chain(&self.depth) {
@@ -403,7 +424,9 @@ impl Fisher {
                  `silvr uncertainty` on the model again",
             ));
         }
-        if bytes.len() < HEADER_BYTES || &bytes[..8] != MAGIC {
+        let v2 = bytes.len() >= 8 && &bytes[..8] == MAGIC_V2;
+        let header = if v2 { HEADER_BYTES_V2 } else { HEADER_BYTES };
+        if bytes.len() < header || !(v2 || &bytes[..8] == MAGIC) {
             return Err(bad(
                 "not a SiLVR uncertainty file (bad magic or truncated header)",
             ));
@@ -416,7 +439,7 @@ impl Fisher {
             return Err(bad(&format!("{cells} cells per axis is out of range")));
         }
         let nv = PerturbationGrid { cells }.vertices();
-        let want = HEADER_BYTES + 8 * nv;
+        let want = header + 8 * nv;
         if bytes.len() != want {
             return Err(bad(&format!(
                 "{} bytes, {want} expected for {cells}^3 cells",
@@ -445,9 +468,14 @@ impl Fisher {
                 factor: f3(84),
                 returns: u64_at(108),
                 coverage: f3(116),
+                spread: match (v2, u64_at(108)) {
+                    (false, _) => f3(140),
+                    (true, 0) => [1.0; 3],
+                    (true, _) => [0.0; 3],
+                },
             },
-            colour: floats(HEADER_BYTES),
-            depth: floats(HEADER_BYTES + 4 * nv),
+            colour: floats(header),
+            depth: floats(header + 4 * nv),
         };
         let positive = |v: f64| v.is_finite() && v > 0.0;
         if !(positive(f.prior) && positive(f.colour_sigma) && positive(f.depth_sigma)) {
@@ -458,6 +486,14 @@ impl Fisher {
         }
         if !f.calibration.factor.iter().all(|&k| positive(k)) {
             return Err(bad("calibration factors must be positive"));
+        }
+        if !f
+            .calibration
+            .spread
+            .iter()
+            .all(|&a| a.is_finite() && a >= 0.0)
+        {
+            return Err(bad("spread factors must be finite and not negative"));
         }
         f.check().map_err(|e| bad(&e.to_string()))?;
         Ok(f)
@@ -501,6 +537,19 @@ impl PointUncertainty {
             Modality::Colour => &self.colour,
             Modality::Depth => &self.depth,
             Modality::Combined => &self.combined,
+        }
+    }
+
+    /// Folds each point's ray spread (metres, one per point) into every read-out ([`with_spread`]) with
+    /// the read-outs' factors `a` (colour, depth, combined).
+    pub fn fold_spread(&mut self, spread_m: &[f32], a: [f64; 3]) {
+        for (v, a) in [&mut self.colour, &mut self.depth, &mut self.combined]
+            .into_iter()
+            .zip(a)
+        {
+            for (l, &s) in v.iter_mut().zip(spread_m) {
+                *l = with_spread(*l, s, a);
+            }
         }
     }
 }
@@ -651,11 +700,28 @@ pub fn noise_scales(trainer: &Trainer) -> (f64, f64) {
 
 /// Adds the three read-out fields (`log_std_colour`, `log_std_depth`, `log_std_combined`: log10 σ in
 /// metres, calibrated when the Fisher is) to a cloud in the dataset's metric frame.
+/// Each point's own ray spread ([`DEPTH_SPREAD_FIELD`], written by the export) is folded into every
+/// read-out ([`fold_spread`]); a cloud without it (exported before 2026-12-05) reads the field's σ alone.
 pub fn annotate_cloud(fisher: &Fisher, cloud: &mut crate::pointcloud::PointCloud) {
-    let u = fisher.read_out_metric(Posterior::Calibrated, &cloud.positions);
+    let mut u = fisher.read_out_metric(Posterior::Calibrated, &cloud.positions);
+    if let Some(s) = cloud.scalar(DEPTH_SPREAD_FIELD) {
+        u.fold_spread(s, fisher.spread_factors(Posterior::Calibrated));
+    }
     cloud.set_scalar("log_std_colour", u.colour);
     cloud.set_scalar("log_std_depth", u.depth);
     cloud.set_scalar("log_std_combined", u.combined);
+}
+
+/// log10 √(σ² + (a·s)²) of a log10 σ, a spread s (metres) and its factor a: the field's uncertainty about
+/// where the surface is and the ray's about where along it the point sits are independent, so variances
+/// add. The spread is that of the ray's weights, not of the error of their mean (on one blurred surface the
+/// mean is still on it), hence a, fitted like k on held-out returns ([`calibrate`]).
+pub fn with_spread(log_std: f32, spread_m: f32, a: f64) -> f32 {
+    if !spread_m.is_finite() || spread_m <= 0.0 || a <= 0.0 {
+        return log_std;
+    }
+    let s = 10f64.powf(log_std as f64);
+    (0.5 * (s * s + (a * spread_m as f64).powi(2)).log10()) as f32
 }
 
 /// The uncertainty pass over a trained field: `config.batches` batches of `config.rays_per_batch` pixel
@@ -870,6 +936,7 @@ mod tests {
             factor: [1.0, 100.0, 1.0],
             returns: 10,
             coverage: [0.68; 3],
+            spread: [0.5, 0.25, 0.0],
         };
         let cal = f.read_out_metric(Posterior::Calibrated, &[p]).depth[0];
         assert!((cal - depth - 2.0).abs() < 1e-3, "{cal} vs {depth} + 2");
@@ -882,6 +949,18 @@ mod tests {
                 .to_string();
             assert!(e.contains("u.bin"), "{e}");
         }
+        // A spread adds in quadrature with its factor: 8 cm at a = 0.25 on a 1.5 cm σ reads 2.5 cm.
+        assert!((with_spread((0.015f32).log10(), 0.08, 0.25) - (0.025f32).log10()).abs() < 1e-5);
+        assert_eq!(with_spread(-2.0, 0.08, 0.0), -2.0);
+        assert_eq!(with_spread(-2.0, f32::NAN, 1.0), -2.0);
+        // Version 2 (no spread factors): calibrated files read a = 0, their σ as it was.
+        let mut v2 = bytes[..HEADER_BYTES_V2].to_vec();
+        v2[..8].copy_from_slice(b"SILVRFI2");
+        v2.extend_from_slice(&bytes[HEADER_BYTES..]);
+        let g = Fisher::from_bytes(&v2, "u.bin").unwrap();
+        assert_eq!(g.calibration.spread, [0.0; 3]);
+        assert_eq!(g.calibration.factor, f.calibration.factor);
+        assert_eq!((g.colour, g.depth), (f.colour.clone(), f.depth.clone()));
         let mut old = bytes.clone();
         old[..8].copy_from_slice(b"SILVRFI1");
         let e = Fisher::from_bytes(&old, "u.bin").unwrap_err().to_string();
