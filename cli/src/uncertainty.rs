@@ -59,11 +59,13 @@ pub fn run(a: &UncertaintyArgs) -> Result<UncertaintySummary> {
         Some(d) => d.clone(),
         None => dataset_of(&a.model_dir)?,
     };
+    // The pixels the field was trained on: its run's downscale (the posterior is given those observations).
+    let downscale = downscale_of(&a.model_dir);
     let data = TrainData::load_within(
         &dataset,
         a.data_root.as_deref(),
         &LoadOptions {
-            downscale: 1,
+            downscale,
             skip_lidar: false,
         },
     )?;
@@ -90,6 +92,16 @@ pub fn run(a: &UncertaintyArgs) -> Result<UncertaintySummary> {
         }
     }
     Ok(out)
+}
+
+/// The image downscale a `silvr train` run recorded in its `train.json` (1 where it recorded none: runs
+/// before 2026-12-05, or a folder without one).
+pub fn downscale_of(dir: &Path) -> u32 {
+    std::fs::read(dir.join("train.json"))
+        .ok()
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+        .and_then(|v| v["downscale"].as_u64())
+        .map_or(1, |d| d.clamp(1, 64) as u32)
 }
 
 /// The dataset a `silvr train` run names in its `train.json`.
@@ -141,6 +153,13 @@ pub fn print_summary(u: &job::UncertaintySummary, config: &UncertaintyConfig) {
         calibration_line(&u.calibration, u.prior_sigma_m)
     );
     if let Some(h) = &u.held_out_check {
+        if let [Some(c), Some(d), Some(b)] = h.ause {
+            eprintln!(
+                "uncertainty: AUSE of the held-out residuals (calibrated): colour {c:.3}, depth {d:.3}, \
+                 combined {b:.3} (random {:.3})",
+                h.ause_random
+            );
+        }
         for (post, rows) in [("raw", &h.raw), ("calibrated", &h.calibrated)] {
             if let Some(Some(r)) = rows.last() {
                 eprintln!(

@@ -201,6 +201,9 @@ pub struct HeldOutCheck {
     pub returns: usize,
     pub raw: Vec<Option<uncertainty::reliability::Reliability>>,
     pub calibrated: Vec<Option<uncertainty::reliability::Reliability>>,
+    /// AUSE of the residuals ranked by each calibrated read-out (colour, depth, combined), and by chance.
+    pub ause: [Option<f64>; 3],
+    pub ause_random: f64,
 }
 
 /// The uncertainty pass in a few numbers ([`JobSummary::uncertainty_brief`]).
@@ -238,6 +241,8 @@ impl UncertaintyBrief {
 pub struct JobSummary {
     pub mode: &'static str,
     pub dataset: String,
+    /// The images' integer downscale in training (1 = full size).
+    pub downscale: u32,
     pub steps: u32,
     pub train_s: f64,
     /// `wgpu` or `cpu`.
@@ -485,6 +490,7 @@ impl TrainJob {
         let summary = JobSummary {
             mode: self.trainer.config.mode.name(),
             dataset: opts.dataset.clone(),
+            downscale: self.trainer.data.downscale,
             steps: self.trainer.step,
             train_s: self.train_s,
             backend: engine,
@@ -585,6 +591,15 @@ pub async fn uncertainty_pass(
             returns: check.residual_m.len(),
             raw: table(uncertainty::Posterior::Raw),
             calibrated: table(uncertainty::Posterior::Calibrated),
+            ause: uncertainty::Modality::ALL.map(|m| {
+                uncertainty::calibrate::held_out_ause(
+                    &fisher,
+                    m,
+                    uncertainty::Posterior::Calibrated,
+                    &check,
+                )
+            }),
+            ause_random: uncertainty::sparsify::random_ause(&check.residual_m, 5, 17),
         }
     });
     let seconds = t0.elapsed().as_secs_f64();

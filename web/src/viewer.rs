@@ -748,7 +748,7 @@ fn show_legend(v: &Shared) {
         })
         .collect();
     let title = if is_log_std(field) {
-        format!("{field}: posterior σ (metres, calibrated on held-out lidar)")
+        format!("{field}: σ in metres (the field's posterior and the ray's spread, calibrated on held-out lidar)")
     } else {
         format!("{field}: distance to ground truth")
     };

@@ -63,6 +63,13 @@ fn a_ply_claiming_2_31_vertices_is_refused_within_the_bound() {
     assert_refused("2^31 vertices", "claims.ply", || {
         parse_layer(&claims, "claims.ply", "file:claims.ply", 0).map(|_| ())
     });
+    // 2^25 vertices (512 MiB of these four floats) is a reservation wasm32 could make: only the bound by
+    // the bytes left refuses it before memory grows (2^31 alone would fail `try_reserve` on wasm32 anyway).
+    let mut claims = ply(1 << 25);
+    claims.resize(1024, 0);
+    assert_refused("2^25 vertices", "claims25.ply", || {
+        parse_layer(&claims, "claims25.ply", "file:claims25.ply", 0).map(|_| ())
+    });
     // Not a reader that refuses everything: the count those bytes hold opens.
     let mut fits = ply(50);
     fits.resize(fits.len() + 16 * 50, 0);

@@ -89,6 +89,9 @@ pub struct TrainData {
     /// uncertainty's depth noise model, and what a held-out return's residual is allowed beyond the
     /// field's own error.
     pub lidar_range_noise_m: f64,
+    /// The integer downscale the images were loaded at (1 = full size): what a later pass over the same
+    /// field (`silvr uncertainty`) must load again to see the pixels it was trained on.
+    pub downscale: u32,
 }
 
 /// Lidar range noise (1 σ, metres) assumed when a dataset does not state its own: the datasheet figure
@@ -322,6 +325,7 @@ impl TrainData {
             val,
             skipped,
             lidar_range_noise_m,
+            downscale: opts.downscale.max(1),
         })
     }
 

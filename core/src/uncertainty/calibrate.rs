@@ -117,6 +117,22 @@ pub fn held_out_reliability(
     reliability(&predicted, &held.residual_m, at, 10)
 }
 
+/// The AUSE of the held-out residuals ranked by one read-out's point σ (with each ray's spread): how well σ
+/// orders the error where there is no ground truth (`None` without returns).
+pub fn held_out_ause(
+    fisher: &Fisher,
+    m: Modality,
+    post: Posterior,
+    held: &HeldOutReturns,
+) -> Option<f64> {
+    let ls = fisher.read_out_scene(m, post, &held.points);
+    let a = fisher.spread_factors(post)[m.index()];
+    let sigma: Vec<f32> = (0..ls.len())
+        .map(|i| held.sigma_m(i, ls[i], a).log10() as f32)
+        .collect();
+    super::sparsify::sparsification(&held.residual_m, &sigma).map(|s| s.ause)
+}
+
 /// Renders up to `max` held-out returns (chosen by `seed`) with the trainer's engine.
 pub async fn held_out_returns(
     trainer: &mut Trainer,
