@@ -137,8 +137,8 @@ impl UncertaintySummary {
 /// What σ means, in one sentence (the CLI's print and the report's uncertainty section).
 pub const SIGMA_MEANS: &str = "σ is the posterior standard deviation, in metres, of where the field puts a \
      surface point: the Laplace posterior of a perturbation field given every pixel and lidar return \
-     trained on, with the spread of the point's own ray added in quadrature, each scaled by one factor \
-     per read-out so that 1σ and 2σ cover 68 % and 95 % of lidar returns held out of training";
+     trained on, with the spread of the point's own ray added in quadrature, the two scaled by factors \
+     fitted per read-out so that 1σ and 2σ cover 68 % and 95 % of lidar returns held out of training";
 
 /// What the pass did, in metres: the rays it sampled and the observations the posterior stands for, the
 /// calibration, and the filter (`silvr uncertainty` and `silvr train` print the same).
@@ -440,11 +440,7 @@ pub fn add_raw_fields<'a>(cloud: &mut PointCloud, fisher_of: impl Fn(usize) -> O
         let Some(f) = fisher_of(id) else { continue };
         let idx: Vec<usize> = (0..n).filter(|&i| submap[i] == id).collect();
         let pts: Vec<glam::DVec3> = idx.iter().map(|&i| cloud.positions[i]).collect();
-        let mut u = f.read_out_metric(Posterior::Raw, &pts);
-        if let Some(all) = cloud.scalar(uncertainty::DEPTH_SPREAD_FIELD) {
-            let s: Vec<f32> = idx.iter().map(|&i| all[i]).collect();
-            u.fold_spread(&s, f.spread_factors(Posterior::Raw));
-        }
+        let u = f.read_out_metric(Posterior::Raw, &pts);
         for (k, m) in Modality::ALL.iter().enumerate() {
             for (j, &i) in idx.iter().enumerate() {
                 raw[k][i] = u.of(*m)[j];
@@ -533,7 +529,8 @@ pub fn reliability_block(
     Ok(out)
 }
 
-/// Mean read-out per semantic label at the exact surface points of the training views (synthetic
+/// Mean raw Laplace read-out (k = 1, no ray spread: what the field's information alone says, since these
+/// points are not rays' ends) per semantic label at the exact surface points of the training views (synthetic
 /// datasets: `gt/semantic` and `gt/depth` beside `images/`), plus points 5 m under the visible surfaces,
 /// which no ray reaches (they should read the prior). Each label is also summarised per band of range
 /// from the camera ([`RANGE_BANDS_M`]): how many rays see a grid cell, and at what footprint, falls with
@@ -636,12 +633,14 @@ pub fn by_label(
     let u = read_scene(fisher, &under);
     out["under_road_5m"] = summary(&u, &|_| true);
     out["prior"] = fisher.prior_sigma_m().log10().into();
+    out["read_out"] = "raw Laplace σ (k = 1, no ray spread), log10 metres".into();
     Ok(Some(out))
 }
 
-/// The calibrated read-outs at scene-frame points.
+/// The raw Laplace read-outs at scene-frame points: the calibrated k is fitted beside the rays' spread
+/// (a), which points that end no ray lack, so k alone would understate σ there.
 fn read_scene(fisher: &Fisher, pts: &[[f32; 3]]) -> uncertainty::PointUncertainty {
-    let r = |m| fisher.read_out_scene(m, Posterior::Calibrated, pts);
+    let r = |m| fisher.read_out_scene(m, Posterior::Raw, pts);
     uncertainty::PointUncertainty {
         colour: r(Modality::Colour),
         depth: r(Modality::Depth),
@@ -667,4 +666,28 @@ fn write(path: &Path, bytes: &[u8]) -> Result<()> {
 
 fn write_ply_atomic(path: &Path, cloud: &PointCloud) -> Result<()> {
     write_ply(path, cloud).with_context(|| format!("writing {}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::downscale_of;
+
+    /// `silvr uncertainty` loads the images at the downscale the field was trained at, read from the run's
+    /// `train.json`; runs that recorded none (or a folder without one) load full size.
+    #[test]
+    fn the_pass_reads_the_runs_downscale() {
+        let dir = std::env::temp_dir().join(format!("silvr-downscale-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        assert_eq!(downscale_of(&dir), 1, "no train.json");
+        let put = |v: &str| std::fs::write(dir.join("train.json"), v).unwrap();
+        put(r#"{"dataset": "d", "downscale": 2}"#);
+        assert_eq!(downscale_of(&dir), 2);
+        put(r#"{"dataset": "d"}"#);
+        assert_eq!(downscale_of(&dir), 1, "recorded none");
+        put(r#"{"downscale": 0}"#);
+        assert_eq!(downscale_of(&dir), 1, "clamped");
+        put("not json");
+        assert_eq!(downscale_of(&dir), 1);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

@@ -209,10 +209,19 @@ pub struct HeldOutCheck {
 /// The uncertainty pass in a few numbers ([`JobSummary::uncertainty_brief`]).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
 pub struct UncertaintyBrief {
-    /// Calibration factor per read-out (colour, depth, combined); 1 when uncalibrated.
+    /// Calibration factor k per read-out (colour, depth, combined); 1 when uncalibrated.
     pub factors: [f64; 3],
-    /// Median raw Laplace σ (k = 1) per read-out on the held-out lidar returns (metres), where checked.
+    /// The factor a on the rays' spread per read-out; 0 when uncalibrated.
+    #[serde(default)]
+    pub spread_factors: [f64; 3],
+    /// Median raw Laplace σ (k = 1, no spread) per read-out on the held-out lidar returns (metres, with the
+    /// lidar's noise in quadrature as the check compares them), where checked.
     pub raw_median_sigma_m: [Option<f64>; 3],
+    /// Median calibrated point σ (with the rays' spread, and the lidar's noise in quadrature) per read-out on
+    /// the same returns: what the fit made of them, steadier than its two factors, which trade against each
+    /// other.
+    #[serde(default)]
+    pub calibrated_median_sigma_m: [Option<f64>; 3],
     /// The prior's σ (metres): `(prior / σ)² − 1` is the Fisher's weight against the prior's.
     pub prior_sigma_m: f64,
     /// Σ of the Fisher diagonals over every cell, colour and depth.
@@ -221,15 +230,20 @@ pub struct UncertaintyBrief {
 
 impl UncertaintyBrief {
     pub fn of(u: &UncertaintySummary) -> Self {
-        let mut raw = [None; 3];
+        let (mut raw, mut calibrated) = ([None; 3], [None; 3]);
         if let Some(h) = &u.held_out_check {
             for (slot, r) in raw.iter_mut().zip(&h.raw) {
+                *slot = r.as_ref().map(|r| r.median_sigma_m);
+            }
+            for (slot, r) in calibrated.iter_mut().zip(&h.calibrated) {
                 *slot = r.as_ref().map(|r| r.median_sigma_m);
             }
         }
         Self {
             factors: u.calibration.factor,
+            spread_factors: u.calibration.spread,
             raw_median_sigma_m: raw,
+            calibrated_median_sigma_m: calibrated,
             prior_sigma_m: u.prior_sigma_m,
             fisher_totals: u.fisher_totals,
         }
@@ -561,7 +575,8 @@ pub async fn uncertainty_pass(
         })
     })
     .await?;
-    // One factor per read-out, fitted on lidar returns training held out (never on ground truth).
+    // Two factors per read-out (k on the Laplace σ, a on the rays' spread), fitted on lidar returns training
+    // held out (never on ground truth).
     let held = if config.calibration_returns > 0 {
         uncertainty::calibrate::held_out_returns(trainer, config.calibration_returns, config.seed)
             .await?
@@ -665,11 +680,19 @@ pub async fn uncertainty_image(
             [0, 1, 2].map(|k| r.origin[k] + r.dir[k] * t)
         })
         .collect();
-    let u = fisher.read_out_scene(
-        uncertainty::Modality::Combined,
-        uncertainty::Posterior::Calibrated,
-        &pts,
-    );
+    // Each pixel's σ as a point there would carry it: with its ray's spread.
+    let a = fisher.spread_factors(uncertainty::Posterior::Calibrated)
+        [uncertainty::Modality::Combined.index()];
+    let u: Vec<f32> = fisher
+        .read_out_scene(
+            uncertainty::Modality::Combined,
+            uncertainty::Posterior::Calibrated,
+            &pts,
+        )
+        .iter()
+        .zip(&v.spread_m)
+        .map(|(&l, &s)| uncertainty::with_spread(l, s, a))
+        .collect();
     let lo = u
         .iter()
         .cloned()

@@ -192,8 +192,17 @@ export function trainSuite(driver) {
         const d = Math.abs(Math.log10(r.uncertainty.raw_median_sigma_m[k] / nb.raw_median_sigma_m[k]));
         assert.ok(d <= RAW_SIGMA_TOLERANCE[k], `raw median σ of read-out ${k}: ${r.uncertainty.raw_median_sigma_m[k]} vs native ${nb.raw_median_sigma_m[k]} m`);
       }
+      // The calibration: since the ray's spread is part of σ (2026-12-05) the fit has two factors per read-out
+      // (k on the Laplace σ, a on the spread) that trade against each other on a grid of a, so a tiny
+      // difference in the held-out renders can move both; what they make of the held-out returns, the
+      // calibrated median σ there, is what is compared.
+      console.log(
+        `${driver.name} vs native: calibrated median σ on held-out returns ${r.uncertainty.calibrated_median_sigma_m.map((v) => v?.toFixed(4))} ` +
+          `vs ${nb.calibrated_median_sigma_m.map((v) => v?.toFixed(4))} m`,
+      );
       for (const k of [0, 1, 2]) {
-        assert.ok(Math.abs(Math.log10(r.uncertainty.factors[k] / nb.factors[k])) <= QUANTILE_TOLERANCE, `calibration factor ${k}`);
+        const d = Math.abs(Math.log10(r.uncertainty.calibrated_median_sigma_m[k] / nb.calibrated_median_sigma_m[k]));
+        assert.ok(d <= QUANTILE_TOLERANCE, `calibrated median σ of read-out ${k}: ${r.uncertainty.calibrated_median_sigma_m[k]} vs native ${nb.calibrated_median_sigma_m[k]} m`);
       }
       assert.ok(r.kept > 0 && r.kept <= r.points);
       assert.ok(r.outputs.includes('checkpoint.ckpt') && r.outputs.includes('points_filtered.ply'));

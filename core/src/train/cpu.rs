@@ -775,9 +775,6 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
-    /// The median depth is where the cumulative weight reaches ½, interpolated within the crossing
-    /// sample: on a ray whose weight is split between a near and a far surface it sits on one of them,
-    /// while the expected depth floats between; without ½ of the weight it is the far end.
     #[test]
     fn depth_spread_is_zero_on_one_thin_surface_and_half_the_gap_between_two() {
         let edges = [1.0, 2.0, 2.0, 4.0, 4.0, 6.0];
@@ -791,6 +788,9 @@ mod tests {
         assert_eq!(depth_spread(&[0.0; 5], &edges), 0.0);
     }
 
+    /// The median depth is where the cumulative weight reaches ½, interpolated within the crossing
+    /// sample: on a ray whose weight is split between a near and a far surface it sits on one of them,
+    /// while the expected depth floats between; without ½ of the weight it is the far end.
     #[test]
     fn median_depth_sits_on_a_surface() {
         let edges = [1.0, 2.0, 3.0, 4.0, 5.0];

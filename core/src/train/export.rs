@@ -20,6 +20,8 @@ pub struct ViewRender {
     /// Expected depth in metres (range along the ray); 0 where the camera has no ray.
     pub depth_m: Vec<f32>,
     pub accumulation: Vec<f32>,
+    /// Each ray's termination spread in metres ([`depth_spread`](super::cpu::depth_spread)).
+    pub spread_m: Vec<f32>,
     /// World-frame unit normals (zero where none).
     pub normals: Vec<[f32; 3]>,
     /// Pixels the camera has a ray for.
@@ -144,6 +146,7 @@ impl Trainer {
             rgb: Vec::with_capacity(out.len()),
             depth_m: Vec::with_capacity(out.len()),
             accumulation: Vec::with_capacity(out.len()),
+            spread_m: Vec::with_capacity(out.len()),
             normals: Vec::with_capacity(out.len()),
             valid,
         };
@@ -152,11 +155,13 @@ impl Trainer {
                 v.rgb.push(o.out.rgb.map(to_u8));
                 v.depth_m.push(o.expected_depth / scale);
                 v.accumulation.push(o.out.accumulation);
+                v.spread_m.push(o.depth_spread / scale);
                 v.normals.push(o.out.normal);
             } else {
                 v.rgb.push([0; 3]);
                 v.depth_m.push(0.0);
                 v.accumulation.push(0.0);
+                v.spread_m.push(0.0);
                 v.normals.push([0.0; 3]);
             }
         }

@@ -1,17 +1,20 @@
-//! The Laplace σ checked against lidar returns the field never saw, and one factor per read-out fitted
-//! on them (never on ground truth).
+//! The point σ checked against lidar returns the field never saw, and two factors per read-out fitted on
+//! them (never on ground truth): k on the Laplace σ, a on the ray's spread s ([`super::with_spread`]).
 //!
 //! Training holds one lidar return in [`HELD_OUT_RETURN_EVERY`](crate::train::data::HELD_OUT_RETURN_EVERY)
 //! out of its losses. Each held-out return's ray is rendered; the field's point sits at the expected depth
 //! E, the return at range d. The residual that speaks to the point's position is the point-to-plane
 //! distance |E − d|·|cos θ| (θ between the ray and the lidar normal: a point slid along a wall is not
 //! wrong), and the return carries the lidar's own range noise σ_l, which projects to σ_l·|cos θ|. With
-//! σ(k) the read-out under factor k, the fit is the smallest k for which
+//! σ(k, a) = √(σ_k² + (a·s)²) the point's σ under the factors, for each a on a grid the fit takes the
+//! smallest k for which
 //!
-//! |E − d|·|cos θ| ≤ √(σ(k)² + (σ_l·|cos θ|)²)
+//! |E − d|·|cos θ| ≤ √(σ(k, a)² + (σ_l·|cos θ|)²)
 //!
-//! holds for 68.27 % of the returns: what 1σ of a Gaussian error covers. σ grows with k (the information
-//! is divided by k²), so coverage does too and bisection finds it. Grazing returns (|cos θ| < 0.2) and
+//! holds for 68.27 % of the returns (what 1σ of a Gaussian error covers; σ grows with k, the information
+//! being divided by k², so coverage does too and bisection finds it), and keeps the pair whose 2σ covers
+//! closest to 95.45 %. The spread is along the ray and is not projected by |cos θ| as the residual is: a
+//! absorbs the returns' mean incidence, as it does for an exported point, whose σ carries s unprojected. Grazing returns (|cos θ| < 0.2) and
 //! rays the field leaves unfinished (accumulation below the export's 0.98) are not used: the first measure
 //! the surface's offset poorly, the second are not points the export would keep.
 
@@ -212,7 +215,7 @@ pub fn coverage(held: &HeldOutReturns, log_std: &[f32], a: f64, within: f64) -> 
 pub const TWO_SIGMA: f64 = 0.954_499_736;
 
 /// One held-out return's read-out as a function of k: its cell's vertex informations (scene units⁻²)
-/// and normalised squared trilinear weights ([`Fisher::log_std`]'s rule), and what is added to σ².
+/// and normalised squared trilinear weights ([`Fisher::log_std`]'s rule).
 struct ReturnReadOut {
     info: [f64; 8],
     weight: [f64; 8],
@@ -335,7 +338,7 @@ pub fn calibrate(fisher: &mut Fisher, held: &HeldOutReturns) {
         factor: [1.0; 3],
         returns: held.residual_m.len() as u64,
         coverage: [f64::NAN; 3],
-        spread: [1.0; 3],
+        spread: [0.0; 3],
     };
     let has_depth = fisher.depth.iter().any(|&h| h > 0.0);
     for m in Modality::ALL {

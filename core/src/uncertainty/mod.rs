@@ -77,8 +77,8 @@ pub const PRIOR_SIGMA_M: f64 = 1.0;
 pub const CALIBRATION_RETURNS: usize = 8192;
 
 /// Where a read-out stops meaning a measurement: σ ≥ σ_p / √2 is where the observations add no more
-/// information than the prior (H / k² ≤ 1 / σ_p²). The studio shows such points as "unconstrained",
-/// not as a large σ.
+/// information than the prior (H / k² ≤ 1 / σ_p²), or, for a point's σ, where its ray's spread alone is
+/// that wide (a·s ≥ 0.71 m). The studio shows such points as "unconstrained", not as a large σ.
 pub fn unconstrained_log_std(prior_sigma_m: f64) -> f32 {
     (prior_sigma_m / std::f64::consts::SQRT_2).log10() as f32
 }
@@ -218,7 +218,7 @@ pub struct Fisher {
 }
 
 /// Global factors k on the Laplace σ and a on each point's ray spread (by read-out: colour, depth,
-/// combined), fitted on held-out lidar returns; all 1 when uncalibrated.
+/// combined), fitted on held-out lidar returns; uncalibrated, k = 1 and a = 0: the Laplace σ alone.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Calibration {
     pub factor: [f64; 3],
@@ -226,14 +226,10 @@ pub struct Calibration {
     pub returns: u64,
     /// Coverage the fit reached on them at 1σ (≈ 0.683 when it could).
     pub coverage: [f64; 3],
-    /// The factor a on the ray spread s in a point's σ = √(σ_k² + (a·s)²) ([`with_spread`]); 0 in files
-    /// calibrated before the spread was part of σ (`SILVRFI2`).
-    #[serde(default = "unit_spread")]
+    /// The factor a on the ray spread s in a point's σ = √(σ_k² + (a·s)²) ([`with_spread`]); 0 where
+    /// uncalibrated and in files from before the spread was part of σ (`SILVRFI2`).
+    #[serde(default)]
     pub spread: [f64; 3],
-}
-
-fn unit_spread() -> [f64; 3] {
-    [1.0; 3]
 }
 
 impl Calibration {
@@ -241,7 +237,7 @@ impl Calibration {
         factor: [1.0; 3],
         returns: 0,
         coverage: [f64::NAN; 3],
-        spread: [1.0; 3],
+        spread: [0.0; 3],
     };
 
     pub fn is_calibrated(&self) -> bool {
@@ -289,9 +285,9 @@ impl Modality {
 /// Which posterior a read-out gives.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Posterior {
-    /// The Laplace posterior as it is (k = 1).
+    /// The Laplace posterior as it is (k = 1; a = 0 where the spread is folded in).
     Raw,
-    /// With the calibration's factor k.
+    /// With the calibration's factors (k; and a where the spread is folded in).
     Calibrated,
 }
 
@@ -325,10 +321,11 @@ impl Fisher {
         }
     }
 
-    /// The factors a on a point's ray spread, by read-out (colour, depth, combined).
+    /// The factors a on a point's ray spread, by read-out (colour, depth, combined): none in the raw
+    /// posterior (the Laplace σ alone, as the held-out tables' "raw" rows show it).
     pub fn spread_factors(&self, post: Posterior) -> [f64; 3] {
         match post {
-            Posterior::Raw => [1.0; 3],
+            Posterior::Raw => [0.0; 3],
             Posterior::Calibrated => self.calibration.spread,
         }
     }
@@ -380,7 +377,7 @@ impl Fisher {
 }
 
 const MAGIC: &[u8; 8] = b"SILVRFI3";
-/// The version before the spread factors: read with a = 0 (its σ had no spread) when calibrated.
+/// The version before the spread factors: read with a = 0 (its σ had no spread).
 const MAGIC_V2: &[u8; 8] = b"SILVRFI2";
 /// Magic, cells, rays, lidar rays, λ, σ_c, σ_d, frame centre (3) and scale, factors (3), returns,
 /// coverages (3), spread factors (3; not in version 2).
@@ -468,11 +465,7 @@ impl Fisher {
                 factor: f3(84),
                 returns: u64_at(108),
                 coverage: f3(116),
-                spread: match (v2, u64_at(108)) {
-                    (false, _) => f3(140),
-                    (true, 0) => [1.0; 3],
-                    (true, _) => [0.0; 3],
-                },
+                spread: if v2 { [0.0; 3] } else { f3(140) },
             },
             colour: floats(header),
             depth: floats(header + 4 * nv),
@@ -953,7 +946,7 @@ mod tests {
         assert!((with_spread((0.015f32).log10(), 0.08, 0.25) - (0.025f32).log10()).abs() < 1e-5);
         assert_eq!(with_spread(-2.0, 0.08, 0.0), -2.0);
         assert_eq!(with_spread(-2.0, f32::NAN, 1.0), -2.0);
-        // Version 2 (no spread factors): calibrated files read a = 0, their σ as it was.
+        // Version 2 (no spread factors): files read a = 0, their σ as it was.
         let mut v2 = bytes[..HEADER_BYTES_V2].to_vec();
         v2[..8].copy_from_slice(b"SILVRFI2");
         v2.extend_from_slice(&bytes[HEADER_BYTES..]);
