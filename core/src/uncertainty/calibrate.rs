@@ -62,39 +62,28 @@ impl HeldOutReturns {
 
     /// Alternate returns: the half the factors are fitted on and the half they are checked on.
     pub fn split(&self) -> (HeldOutReturns, HeldOutReturns) {
+        fn every_other<T: Copy>(v: &[T], parity: usize) -> Vec<T> {
+            v.iter().skip(parity).step_by(2).copied().collect()
+        }
         let half = |parity: usize| HeldOutReturns {
-            points: self
-                .points
-                .iter()
-                .skip(parity)
-                .step_by(2)
-                .copied()
-                .collect(),
-            residual_m: self
-                .residual_m
-                .iter()
-                .skip(parity)
-                .step_by(2)
-                .copied()
-                .collect(),
-            noise_m: self
-                .noise_m
-                .iter()
-                .skip(parity)
-                .step_by(2)
-                .copied()
-                .collect(),
-            spread_m: self
-                .spread_m
-                .iter()
-                .skip(parity)
-                .step_by(2)
-                .copied()
-                .collect(),
+            points: every_other(&self.points, parity),
+            residual_m: every_other(&self.residual_m, parity),
+            noise_m: every_other(&self.noise_m, parity),
+            spread_m: every_other(&self.spread_m, parity),
             available: self.available,
             rendered: self.rendered,
         };
         (half(0), half(1))
+    }
+
+    /// Every return's point σ (metres) under one read-out: the field's σ there with its ray's spread.
+    fn point_sigmas(&self, fisher: &Fisher, m: Modality, post: Posterior) -> Vec<f64> {
+        let ls = fisher.read_out_scene(m, post, &self.points);
+        let a = fisher.spread_factors(post)[m.index()];
+        ls.iter()
+            .enumerate()
+            .map(|(i, &l)| self.sigma_m(i, l, a))
+            .collect()
     }
 }
 
@@ -107,14 +96,11 @@ pub fn held_out_reliability(
     post: Posterior,
     held: &HeldOutReturns,
 ) -> Option<Reliability> {
-    let ls = fisher.read_out_scene(m, post, &held.points);
-    let a = fisher.spread_factors(post)[m.index()];
-    let predicted: Vec<f32> = (0..ls.len())
-        .map(|i| {
-            let s = held.sigma_m(i, ls[i], a);
-            let n = held.noise_m[i];
-            (0.5 * (s * s + n * n).log10()) as f32
-        })
+    let predicted: Vec<f32> = held
+        .point_sigmas(fisher, m, post)
+        .iter()
+        .zip(&held.noise_m)
+        .map(|(&s, &n)| (0.5 * (s * s + n * n).log10()) as f32)
         .collect();
     let at = super::unconstrained_log_std(fisher.prior_sigma_m());
     reliability(&predicted, &held.residual_m, at, 10)
@@ -128,10 +114,10 @@ pub fn held_out_ause(
     post: Posterior,
     held: &HeldOutReturns,
 ) -> Option<f64> {
-    let ls = fisher.read_out_scene(m, post, &held.points);
-    let a = fisher.spread_factors(post)[m.index()];
-    let sigma: Vec<f32> = (0..ls.len())
-        .map(|i| held.sigma_m(i, ls[i], a).log10() as f32)
+    let sigma: Vec<f32> = held
+        .point_sigmas(fisher, m, post)
+        .iter()
+        .map(|s| s.log10() as f32)
         .collect();
     super::sparsify::sparsification(&held.residual_m, &sigma).map(|s| s.ause)
 }
@@ -358,15 +344,14 @@ mod tests {
     use super::*;
     use crate::train::data::SceneFrame;
     use crate::uncertainty::PerturbationGrid;
+    use rand::Rng;
 
-    /// Residuals that scale with each return's ray spread (σ = 0.3·s, s from 1 cm to 1 m) and a field
-    /// whose Laplace σ is far smaller: the fit must put the spread's factor near 0.3, and the calibrated
-    /// σ then covers 68 % and 95 % — where k alone (a = 0) cannot reach 2σ's share.
-    #[test]
-    fn the_fit_weighs_the_ray_spread_when_the_residuals_follow_it() {
+    /// A Fisher whose information is uniform over a 4-cell grid (colour 10⁶, depth 4·10⁶, unit noise
+    /// and scale), so every read-out is one σ everywhere.
+    fn uniform_fisher() -> Fisher {
         let cells = 4;
         let n = PerturbationGrid { cells }.vertices();
-        let fisher = Fisher {
+        Fisher {
             cells,
             colour: vec![1e6; n],
             depth: vec![4e6; n],
@@ -380,13 +365,25 @@ mod tests {
                 scale: 1.0,
             },
             calibration: Calibration::RAW,
-        };
+        }
+    }
+
+    /// A standard normal draw (Box–Muller).
+    fn gaussian(rng: &mut impl Rng) -> f64 {
+        let (u, v): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+
+    /// Residuals that scale with each return's ray spread (σ = 0.3·s, s from 1 cm to 1 m) and a field
+    /// whose Laplace σ is far smaller: the fit must put the spread's factor near 0.3, and the calibrated
+    /// σ then covers 68 % and 95 % — where k alone (a = 0) cannot reach 2σ's share.
+    #[test]
+    fn the_fit_weighs_the_ray_spread_when_the_residuals_follow_it() {
+        let fisher = uniform_fisher();
         let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(5);
         let mut held = HeldOutReturns::default();
-        use rand::Rng;
         for _ in 0..20_000 {
-            let (u, v): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
-            let g = (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos();
+            let g = gaussian(&mut rng);
             let spread = 10f64.powf(rng.random_range(-2.0..0.0));
             held.points.push([0.1, 0.2, 0.3]);
             held.residual_m.push((g * 0.3 * spread).abs());
@@ -416,42 +413,18 @@ mod tests {
         assert!(two < 0.85, "2σ with k alone {two}");
     }
 
-    /// A Fisher whose information is uniform, so every read-out is one σ; residuals drawn from a known
-    /// Gaussian: the fit must find the k that makes σ that Gaussian's.
+    /// A uniform Fisher ([`uniform_fisher`]); residuals drawn from a known Gaussian: the fit must find the
+    /// k that makes σ that Gaussian's.
     #[test]
     fn the_fit_recovers_the_scale_of_gaussian_residuals() {
-        let cells = 4;
-        let n = PerturbationGrid { cells }.vertices();
-        let fisher = Fisher {
-            cells,
-            colour: vec![1e6; n],
-            depth: vec![4e6; n],
-            rays: 1,
-            lidar_rays: 1,
-            prior: 1.0,
-            colour_sigma: 1.0,
-            depth_sigma: 1.0,
-            frame: SceneFrame {
-                center: [0.0; 3],
-                scale: 1.0,
-            },
-            calibration: Calibration::RAW,
-        };
+        let fisher = uniform_fisher();
         // Raw combined σ = 1/√(5e6 + 1) ≈ 0.447 mm; the residuals' σ is 5 cm with 1 cm of noise.
         let true_sigma = 0.05f64;
         let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(3);
         let mut held = HeldOutReturns::default();
-        use rand::Rng;
         for _ in 0..20_000 {
-            let g: f64 = {
-                // Box–Muller.
-                let (u, v): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
-                (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-            };
-            let noise: f64 = {
-                let (u, v): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
-                (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-            };
+            let g = gaussian(&mut rng);
+            let noise = gaussian(&mut rng);
             held.points.push([0.1, 0.2, 0.3]);
             held.residual_m.push((g * true_sigma + noise * 0.01).abs());
             held.noise_m.push(0.01);
