@@ -425,11 +425,12 @@ pub struct ExportCmd {
     /// Target layout: `colmap` (text model: cameras.txt, images.txt, empty points3D.txt), `spires`
     /// (sensor.yaml, raw/camN/ images, undistorted PCD clouds, slam-poses.csv) or `las` (a point cloud
     /// PLY as LAS 1.4 / LAZ by --out's extension, its scalars — uncertainty, submap, error — as
-    /// extra-bytes dimensions).
+    /// extra-bytes dimensions) or `copc` (the same as COPC, the octree-ordered LAZ streaming viewers read by
+    /// byte ranges, with a summary of the uncertainty filter over the whole cloud; streamed, bounded memory).
     pub format: String,
-    /// Dataset folder (holding transforms.json); for `las`, the PLY.
+    /// Dataset folder (holding transforms.json); for `las` and `copc`, the PLY.
     pub dataset: PathBuf,
-    /// Output folder (for `las`: the .laz or .las file).
+    /// Output folder (for `las`: the .laz or .las file; for `copc`: the .copc.laz file).
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -466,7 +467,45 @@ pub fn export(c: ExportCmd) -> Result<()> {
             );
             Ok(())
         }
-        other => anyhow::bail!("unknown export format {other:?} (supported: colmap, spires, las)"),
+        "copc" => {
+            // DATASET is a point cloud, streamed in chunks: a PLY, or a LAS/LAZ (COPC included).
+            use silvr_core::copc::write::{write_copc, CopcInput, CopcOptions};
+            let input = match silvr_core::eval::scan::detect(&c.dataset)? {
+                silvr_core::eval::scan::ScanFormat::Las => CopcInput::Las(&c.dataset),
+                silvr_core::eval::scan::ScanFormat::Ply => CopcInput::Ply(&c.dataset),
+                other => anyhow::bail!(
+                    "{}: a {other:?} file; `export copc` reads a PLY or a LAS/LAZ",
+                    c.dataset.display()
+                ),
+            };
+            let w = write_copc(input, &c.out, &CopcOptions::default())?;
+            println!(
+                "wrote {} points to {} ({:.1} MB; extra dimensions: {})",
+                w.points,
+                c.out.display(),
+                w.bytes as f64 / 1e6,
+                if w.fields.is_empty() {
+                    "none".into()
+                } else {
+                    w.fields.join(", ")
+                }
+            );
+            if let Some(f) = &w.summary.filter {
+                println!(
+                    "summary: the default filter (σ ≤ {1}, on {0}) keeps {2} of {3} points",
+                    f.field,
+                    f.threshold.map_or("∞".into(), |t| {
+                        silvr_core::uncertainty::reliability::format_metres(10f64.powf(t as f64))
+                    }),
+                    f.kept,
+                    w.points
+                );
+            }
+            Ok(())
+        }
+        other => {
+            anyhow::bail!("unknown export format {other:?} (supported: colmap, spires, las, copc)")
+        }
     }
 }
 

@@ -631,6 +631,23 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
     // The filtered map also as LAZ 1.4 for survey and GIS tools (uncertainty and submap as extra bytes).
     let merged_laz = out.join("merged.laz");
     silvr_core::lasfile::write_las(&merged_laz, &merged)?;
+    // Every merged point with its uncertainty as COPC, for the studio and streaming viewers to open by
+    // link and filter themselves (its header's summary states the default filter over the whole map).
+    let merged_copc = out.join("merged.copc.laz");
+    if !merged_all.is_empty() {
+        use silvr_core::copc::write::{write_copc, CopcInput, CopcOptions};
+        let w = write_copc(
+            CopcInput::Cloud(&merged_all),
+            &merged_copc,
+            &CopcOptions::default(),
+        )?;
+        eprintln!(
+            "[reconstruct] {} points as COPC → {} ({:.1} MB)",
+            w.points,
+            merged_copc.display(),
+            w.bytes as f64 / 1e6
+        );
+    }
     eprintln!(
         "[reconstruct] merged {} submaps: {} points ({} before the uncertainty filter) → {}",
         filtered.len(),

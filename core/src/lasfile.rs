@@ -45,100 +45,168 @@ fn descriptor(name: &str, description: &str) -> [u8; 192] {
 
 /// Writes `cloud` to `path` (`.laz` compressed, `.las` not). Non-finite positions are left out.
 pub fn write_las(path: &Path, cloud: &PointCloud) -> Result<usize, LasError> {
-    let err = |reason: String| LasError {
-        file: path.display().to_string(),
-        reason,
-    };
-    let keep: Vec<usize> = (0..cloud.len())
-        .filter(|&i| cloud.positions[i].is_finite())
-        .collect();
-    let (mut lo, mut hi) = (
-        glam::DVec3::splat(f64::INFINITY),
-        glam::DVec3::splat(f64::NEG_INFINITY),
-    );
-    for &i in &keep {
-        lo = lo.min(cloud.positions[i]);
-        hi = hi.max(cloud.positions[i]);
-    }
-    if keep.is_empty() {
-        lo = glam::DVec3::ZERO;
-        hi = glam::DVec3::ZERO;
-    }
-    // i32 steps of SCALE_M from the minimum corner must hold the cloud's extent.
-    if ((hi - lo).max_element() / SCALE_M) >= i32::MAX as f64 {
-        return Err(err(format!(
-            "the cloud spans {:.0} m, beyond what LAS integers hold at {SCALE_M} m",
-            (hi - lo).max_element()
-        )));
-    }
-    let scalars: Vec<&(String, Vec<f32>)> = cloud
+    let names: Vec<String> = cloud
         .scalars
         .iter()
         .filter(|(_, v)| v.len() == cloud.len())
+        .map(|(n, _)| n.clone())
         .collect();
-    let mut b = las::Builder::from((1, 4));
-    b.point_format = las::point::Format::new(7).map_err(|e| err(e.to_string()))?;
-    b.point_format.is_compressed = is_laz(path);
-    b.point_format.extra_bytes = (4 * scalars.len()) as u16;
-    let t = |offset: f64| las::Transform {
-        scale: SCALE_M,
-        offset: offset.floor(),
-    };
-    b.transforms = las::Vector {
-        x: t(lo.x),
-        y: t(lo.y),
-        z: t(lo.z),
-    };
-    b.generating_software = "SiLVR Studio".into();
-    if !scalars.is_empty() {
-        let mut data = Vec::with_capacity(192 * scalars.len());
-        for (name, _) in &scalars {
-            data.extend_from_slice(&descriptor(name, describe(name)));
-        }
-        b.vlrs.push(las::Vlr {
-            user_id: "LASF_Spec".into(),
-            record_id: 4,
-            description: "Extra Bytes".into(),
-            data,
-        });
+    let (lo, hi) = finite_bounds(cloud).unwrap_or((glam::DVec3::ZERO, glam::DVec3::ZERO));
+    let mut sink = LasSink::create(path, lo, hi, &names, Vec::new())?;
+    sink.push(cloud)?;
+    sink.finish()
+}
+
+/// The box of `cloud`'s finite positions, `None` when it has none.
+pub fn finite_bounds(cloud: &PointCloud) -> Option<(glam::DVec3, glam::DVec3)> {
+    let mut b: Option<(glam::DVec3, glam::DVec3)> = None;
+    for p in cloud.positions.iter().filter(|p| p.is_finite()) {
+        b = Some(b.map_or((*p, *p), |(lo, hi)| (lo.min(*p), hi.max(*p))));
     }
-    let header = b.into_header().map_err(|e| err(e.to_string()))?;
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().to_string())
-        .unwrap_or_default();
-    // The extension decides compression, so the temporary name keeps it.
-    let partial = path.with_file_name(format!(
-        ".{name}.partial.{}",
-        if is_laz(path) { "laz" } else { "las" }
-    ));
-    let mut w = las::Writer::from_path(&partial, header).map_err(|e| err(e.to_string()))?;
-    let colours = cloud.colors.as_ref().filter(|c| c.len() == cloud.len());
-    for &i in &keep {
-        let p = cloud.positions[i];
-        let mut extra = Vec::with_capacity(4 * scalars.len());
-        for (_, v) in &scalars {
-            extra.extend_from_slice(&v[i].to_le_bytes());
-        }
-        let point = las::Point {
-            x: p.x,
-            y: p.y,
-            z: p.z,
-            color: Some(colours.map_or(las::Color::new(0, 0, 0), |c| {
-                let [r, g, b] = c[i];
-                las::Color::new(r as u16 * 257, g as u16 * 257, b as u16 * 257)
-            })),
-            extra_bytes: extra,
-            // Format 7 carries a GPS time; a reconstruction has none to give.
-            gps_time: Some(0.0),
-            ..Default::default()
+    b
+}
+
+/// A LAS/LAZ file written chunk by chunk (a map larger than the memory streams through it): the box and
+/// the scalar names are fixed up front, points arrive in [`LasSink::push`]es, and [`LasSink::finish`]
+/// renames the file into place (until then it lives under a temporary name).
+pub struct LasSink {
+    writer: las::Writer<std::io::BufWriter<std::fs::File>>,
+    path: std::path::PathBuf,
+    partial: std::path::PathBuf,
+    names: Vec<String>,
+    written: usize,
+}
+
+impl LasSink {
+    /// A sink for points within `lo`..`hi` carrying `names` as float extra bytes, with `vlrs` added
+    /// after the Extra Bytes VLR.
+    pub fn create(
+        path: &Path,
+        lo: glam::DVec3,
+        hi: glam::DVec3,
+        names: &[String],
+        vlrs: Vec<las::Vlr>,
+    ) -> Result<Self, LasError> {
+        let err = |reason: String| LasError {
+            file: path.display().to_string(),
+            reason,
         };
-        w.write_point(point).map_err(|e| err(e.to_string()))?;
+        // i32 steps of SCALE_M from the minimum corner must hold the cloud's extent.
+        if ((hi - lo).max_element() / SCALE_M) >= i32::MAX as f64 {
+            return Err(err(format!(
+                "the cloud spans {:.0} m, beyond what LAS integers hold at {SCALE_M} m",
+                (hi - lo).max_element()
+            )));
+        }
+        let mut b = las::Builder::from((1, 4));
+        b.point_format = las::point::Format::new(7).map_err(|e| err(e.to_string()))?;
+        b.point_format.is_compressed = is_laz(path);
+        b.point_format.extra_bytes = (4 * names.len()) as u16;
+        let t = |offset: f64| las::Transform {
+            scale: SCALE_M,
+            offset: offset.floor(),
+        };
+        b.transforms = las::Vector {
+            x: t(lo.x),
+            y: t(lo.y),
+            z: t(lo.z),
+        };
+        b.generating_software = "SiLVR Studio".into();
+        if !names.is_empty() {
+            let mut data = Vec::with_capacity(192 * names.len());
+            for name in names {
+                data.extend_from_slice(&descriptor(name, describe(name)));
+            }
+            b.vlrs.push(las::Vlr {
+                user_id: "LASF_Spec".into(),
+                record_id: 4,
+                description: "Extra Bytes".into(),
+                data,
+            });
+        }
+        b.vlrs.extend(vlrs);
+        let header = b.into_header().map_err(|e| err(e.to_string()))?;
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().to_string())
+            .unwrap_or_default();
+        // The extension decides compression, so the temporary name keeps it.
+        let partial = path.with_file_name(format!(
+            ".{name}.partial.{}",
+            if is_laz(path) { "laz" } else { "las" }
+        ));
+        let file = std::fs::File::create(&partial).map_err(|e| err(e.to_string()))?;
+        let writer = las::Writer::new(std::io::BufWriter::with_capacity(1 << 20, file), header)
+            .map_err(|e| {
+                let _ = std::fs::remove_file(&partial);
+                err(e.to_string())
+            })?;
+        Ok(Self {
+            writer,
+            path: path.to_path_buf(),
+            partial,
+            names: names.to_vec(),
+            written: 0,
+        })
     }
-    w.close().map_err(|e| err(e.to_string()))?;
-    drop(w);
-    std::fs::rename(&partial, path).map_err(|e| err(e.to_string()))?;
-    Ok(keep.len())
+
+    fn err(&self, reason: String) -> LasError {
+        LasError {
+            file: self.path.display().to_string(),
+            reason,
+        }
+    }
+
+    /// Appends `chunk`'s finite points; a scalar the chunk lacks is written as NaN.
+    pub fn push(&mut self, chunk: &PointCloud) -> Result<(), LasError> {
+        let columns: Vec<Option<&[f32]>> = self
+            .names
+            .iter()
+            .map(|n| chunk.scalar(n).filter(|v| v.len() == chunk.len()))
+            .collect();
+        let colours = chunk.colors.as_ref().filter(|c| c.len() == chunk.len());
+        for (i, p) in chunk.positions.iter().enumerate() {
+            if !p.is_finite() {
+                continue;
+            }
+            let mut extra = Vec::with_capacity(4 * columns.len());
+            for c in &columns {
+                extra.extend_from_slice(&c.map_or(f32::NAN, |v| v[i]).to_le_bytes());
+            }
+            let point = las::Point {
+                x: p.x,
+                y: p.y,
+                z: p.z,
+                color: Some(colours.map_or(las::Color::new(0, 0, 0), |c| {
+                    let [r, g, b] = c[i];
+                    las::Color::new(r as u16 * 257, g as u16 * 257, b as u16 * 257)
+                })),
+                extra_bytes: extra,
+                // Format 7 carries a GPS time; a reconstruction has none to give.
+                gps_time: Some(0.0),
+                ..Default::default()
+            };
+            self.writer
+                .write_point(point)
+                .map_err(|e| self.err(e.to_string()))?;
+            self.written += 1;
+        }
+        Ok(())
+    }
+
+    /// Closes the file and renames it into place; returns how many points it holds.
+    pub fn finish(mut self) -> Result<usize, LasError> {
+        self.writer.close().map_err(|e| self.err(e.to_string()))?;
+        std::fs::rename(&self.partial, &self.path).map_err(|e| self.err(e.to_string()))?;
+        Ok(self.written)
+    }
+}
+
+impl Drop for LasSink {
+    /// A sink dropped before [`LasSink::finish`] (an error on the way) leaves no partial file behind.
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.partial);
+    }
 }
 
 fn is_laz(path: &Path) -> bool {

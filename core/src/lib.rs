@@ -15,6 +15,7 @@
 //! - **Units**: metres, seconds, radians.
 
 pub mod camera;
+pub mod copc;
 pub mod dataset;
 pub mod eval;
 pub mod field;

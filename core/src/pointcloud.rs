@@ -898,6 +898,11 @@ impl VertexSink {
 /// Reads a PLY file (see the module docs for what is kept). The whole file is read into memory
 /// (fallibly: a file larger than the memory is a [`PlyError::TooLarge`]).
 pub fn read_ply(path: &Path) -> Result<PointCloud, PlyError> {
+    read_ply_with(path, &PlyReadOptions::default())
+}
+
+/// [`read_ply`] keeping only what `opts` asks for.
+pub fn read_ply_with(path: &Path, opts: &PlyReadOptions) -> Result<PointCloud, PlyError> {
     let file = path.display().to_string();
     let io = |source| PlyError::Io {
         file: file.clone(),
@@ -907,7 +912,7 @@ pub fn read_ply(path: &Path) -> Result<PointCloud, PlyError> {
     let len = f.metadata().map_err(io)?.len();
     let mut bytes: Vec<u8> = try_vec(len, "bytes of the file", &file)?;
     io::Read::read_to_end(&mut f, &mut bytes).map_err(io)?;
-    read_ply_bytes(&bytes, &file)
+    read_ply_bytes_with(&bytes, &file, opts)
 }
 
 /// Parses PLY bytes (e.g. a file dropped into the browser); `name` is used in error messages.
@@ -1029,6 +1034,208 @@ fn read_binary(
     out.ok_or_else(|| PlyError::MissingXyz {
         file: file.to_string(),
     })
+}
+
+/// A PLY's vertices handed out in chunks, without holding the whole file: what the COPC export streams
+/// a map through (a 100 M-point map is ~6 GB of PLY). A binary PLY whose vertex items are all scalars, and
+/// whose elements before the vertices are too, is read from disk chunk by chunk; any other PLY (ASCII,
+/// lists among the vertex properties) is read whole as [`read_ply_with`] reads it and handed out from memory.
+pub struct PlyChunks {
+    file: String,
+    total: u64,
+    done: u64,
+    opts_scalars: Vec<String>,
+    colours: bool,
+    source: ChunkSource,
+}
+
+enum ChunkSource {
+    Disk {
+        reader: io::BufReader<File>,
+        vertex: Element,
+        item_bytes: usize,
+        big_endian: bool,
+        buffer: Vec<u8>,
+    },
+    Memory(PointCloud),
+}
+
+impl PlyChunks {
+    /// Opens `path` keeping positions, colours and every scalar property but normals.
+    pub fn open(path: &Path) -> Result<Self, PlyError> {
+        let file = path.display().to_string();
+        let io_err = |source| PlyError::Io {
+            file: file.clone(),
+            source,
+        };
+        let mut f = File::open(path).map_err(io_err)?;
+        let len = f.metadata().map_err(io_err)?.len();
+        let mut head = Vec::new();
+        io::Read::read_to_end(
+            &mut io::Read::take(&mut f, MAX_HEADER_BYTES as u64 + 1),
+            &mut head,
+        )
+        .map_err(io_err)?;
+        let header = parse_header(&head, &file)?;
+        let opts = PlyReadOptions {
+            colours: true,
+            normals: false,
+            scalars: None,
+        };
+        let vi = header
+            .elements
+            .iter()
+            .position(|e| e.name == "vertex")
+            .ok_or_else(|| PlyError::MissingXyz { file: file.clone() })?;
+        let vertex = header.elements[vi].clone();
+        let (targets, names, colours, _) = vertex_targets(&vertex, &opts);
+        if (0..3).any(|k| !targets.contains(&Target::Pos(k))) {
+            return Err(PlyError::MissingXyz { file });
+        }
+        let scalar = |e: &Element| {
+            e.props
+                .iter()
+                .all(|p| matches!(p.kind, PropKind::Scalar(_)))
+        };
+        let streams = header.format != PlyFormat::Ascii
+            && header.elements[..=vi].iter().all(scalar)
+            && vertex.min_binary_item_bytes() > 0;
+        if !streams {
+            let cloud = read_ply_with(path, &opts)?;
+            return Ok(Self {
+                file,
+                total: cloud.len() as u64,
+                done: 0,
+                opts_scalars: names,
+                colours: cloud.colors.is_some(),
+                source: ChunkSource::Memory(cloud),
+            });
+        }
+        // Every element before the vertices is skipped by its size; the vertices must fit the file.
+        let mut skip = header.data_start as u64;
+        for e in &header.elements[..vi] {
+            skip = e
+                .count
+                .checked_mul(e.min_binary_item_bytes())
+                .and_then(|b| b.checked_add(skip))
+                .unwrap_or(u64::MAX);
+        }
+        let item = vertex.min_binary_item_bytes();
+        let available = len.saturating_sub(skip);
+        if vertex
+            .count
+            .checked_mul(item)
+            .is_none_or(|need| need > available)
+        {
+            return Err(PlyError::CountTooLarge {
+                file,
+                element: vertex.name.clone(),
+                count: vertex.count,
+                available,
+                min_item_bytes: item,
+            });
+        }
+        io::Seek::seek(&mut f, io::SeekFrom::Start(skip)).map_err(io_err)?;
+        Ok(Self {
+            total: vertex.count,
+            done: 0,
+            opts_scalars: names,
+            colours,
+            source: ChunkSource::Disk {
+                reader: io::BufReader::with_capacity(1 << 20, f),
+                item_bytes: item as usize,
+                big_endian: header.format == PlyFormat::BinaryBe,
+                vertex,
+                buffer: Vec::new(),
+            },
+            file,
+        })
+    }
+
+    /// How many points the file holds.
+    pub fn len(&self) -> u64 {
+        self.total
+    }
+
+    /// Whether the file holds no point.
+    pub fn is_empty(&self) -> bool {
+        self.total == 0
+    }
+
+    /// The scalar properties each chunk carries, in file order.
+    pub fn scalar_names(&self) -> &[String] {
+        &self.opts_scalars
+    }
+
+    /// Whether the chunks carry colours.
+    pub fn has_colours(&self) -> bool {
+        self.colours
+    }
+
+    /// The next at most `max` points (at least one), or `None` after the last.
+    pub fn next_chunk(&mut self, max: usize) -> Result<Option<PointCloud>, PlyError> {
+        let n = (self.total - self.done).min(max.max(1) as u64);
+        if n == 0 {
+            return Ok(None);
+        }
+        let start = self.done as usize;
+        self.done += n;
+        match &mut self.source {
+            ChunkSource::Memory(cloud) => {
+                let idx: Vec<usize> = (start..start + n as usize).collect();
+                let mut c = cloud.select(&idx);
+                c.normals = None;
+                Ok(Some(c))
+            }
+            ChunkSource::Disk {
+                reader,
+                vertex,
+                item_bytes,
+                big_endian,
+                buffer,
+            } => {
+                let bytes = n as usize * *item_bytes;
+                buffer.resize(bytes, 0);
+                io::Read::read_exact(reader, buffer).map_err(|e| {
+                    if e.kind() == io::ErrorKind::UnexpectedEof {
+                        PlyError::Truncated {
+                            file: self.file.clone(),
+                            reason: format!(
+                                "data ends inside the vertices after item {start} of {}",
+                                self.total
+                            ),
+                        }
+                    } else {
+                        PlyError::Io {
+                            file: self.file.clone(),
+                            source: e,
+                        }
+                    }
+                })?;
+                let mut el = vertex.clone();
+                el.count = n;
+                let opts = PlyReadOptions {
+                    colours: true,
+                    normals: false,
+                    scalars: None,
+                };
+                let mut sink = VertexSink::new(&el, &opts, &self.file)?;
+                let mut pos = 0usize;
+                for _ in 0..n {
+                    for (pi, p) in el.props.iter().enumerate() {
+                        if let PropKind::Scalar(t) = p.kind {
+                            if sink.targets[pi] != Target::Skip {
+                                sink.set(pi, t.decode(&buffer[pos..pos + t.size()], *big_endian));
+                            }
+                            pos += t.size();
+                        }
+                    }
+                    sink.finish_item();
+                }
+                Ok(Some(sink.cloud))
+            }
+        }
+    }
 }
 
 /// Skips one property in binary data; `None` when the data ends first.
@@ -1249,6 +1456,66 @@ mod tests {
         c.set_scalar("uncertainty", (0..n).map(|i| i as f32 * 0.25).collect());
         c.set_scalar("error_m", (0..n).map(|i| -(i as f32)).collect());
         c
+    }
+
+    /// Chunks of a streamed binary PLY, and of an ASCII one read whole, join to what `read_ply` reads
+    /// (normals left out); a file cut inside the vertices is refused up front, naming it.
+    #[test]
+    fn chunks_join_to_the_whole_cloud() {
+        let dir = tmp_dir("chunks");
+        let c = sample_cloud(103, 4);
+        let bin = dir.join("c.ply");
+        write_ply(&bin, &c).unwrap();
+        let mut ascii = format!(
+            "ply\nformat ascii 1.0\nelement vertex {}\nproperty float x\nproperty float y\n\
+             property float z\nproperty float error_m\nend_header\n",
+            c.len()
+        );
+        for (i, p) in c.positions.iter().enumerate() {
+            ascii += &format!(
+                "{} {} {} {}\n",
+                p.x as f32,
+                p.y as f32,
+                p.z as f32,
+                -(i as f32)
+            );
+        }
+        let asc = dir.join("a.ply");
+        fs::write(&asc, ascii).unwrap();
+        for path in [&bin, &asc] {
+            let whole = read_ply(path).unwrap();
+            let mut chunks = PlyChunks::open(path).unwrap();
+            assert_eq!(chunks.len(), 103);
+            let mut joined = PointCloud::new();
+            let mut sizes = vec![];
+            while let Some(k) = chunks.next_chunk(25).unwrap() {
+                sizes.push(k.len());
+                assert!(k.normals.is_none());
+                joined.positions.extend(&k.positions);
+                if let Some(col) = k.colors {
+                    joined.colors.get_or_insert_with(Vec::new).extend(col);
+                }
+                for (name, v) in k.scalars {
+                    match joined.scalars.iter_mut().find(|(n, _)| *n == name) {
+                        Some((_, all)) => all.extend(v),
+                        None => joined.scalars.push((name, v)),
+                    }
+                }
+            }
+            assert_eq!(sizes, [25, 25, 25, 25, 3]);
+            assert_eq!(joined.positions, whole.positions);
+            assert_eq!(joined.colors, whole.colors);
+            assert_eq!(joined.scalars, whole.scalars);
+            assert_eq!(chunks.scalar_names().len(), whole.scalars.len());
+        }
+        let bytes = fs::read(&bin).unwrap();
+        let cut = dir.join("cut.ply");
+        fs::write(&cut, &bytes[..bytes.len() - 10]).unwrap();
+        let e = PlyChunks::open(&cut).err().unwrap().to_string();
+        assert!(
+            e.contains("cut.ply") && e.contains("claims 103 items"),
+            "{e}"
+        );
     }
 
     #[test]

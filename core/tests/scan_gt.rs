@@ -451,6 +451,164 @@ fn laspy_reads_our_laz_with_every_extra_dimension() {
         .all(|(r, c)| *r == c[0] as u64 * 257));
 }
 
+/// A peer's LAS/LAZ with extra bytes of every layout (arrays, an undefined block, then scalars): the chunked
+/// reader behind `silvr export copc X.laz` locates each scalar past the others and reads the values laspy
+/// reads; a peer's COPC reads whole.
+#[test]
+fn shared_extra_bytes_read_as_laspy_reads_them() {
+    let Some(dir) = shared("las_copc") else {
+        return;
+    };
+    let Some(py) = scan_python() else { return };
+    for name in ["extrabytes.las", "extra.laz", "simple.copc.laz"] {
+        let path = dir.join(name);
+        let mut all = PointCloud::new();
+        let mut chunks = 0;
+        let names = silvr_core::eval::scan::read_las_chunks(&path, 400, &mut |c| {
+            chunks += 1;
+            all.positions.extend(&c.positions);
+            for (n, v) in &c.scalars {
+                match all.scalars.iter_mut().find(|(m, _)| m == n) {
+                    Some((_, w)) => w.extend(v),
+                    None => all.scalars.push((n.clone(), v.clone())),
+                }
+            }
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(chunks, all.len().div_ceil(400), "{name}");
+        let code = "import json, sys, laspy\n\
+                    f = laspy.read(sys.argv[1])\n\
+                    d = {e.name: [float(v) for v in f[e.name]] for e in f.point_format.extra_dimensions \
+                         if e.num_elements == 1}\n\
+                    d['n'] = len(f.points)\n\
+                    print(json.dumps(d))";
+        let d = common::python_json(&py, &["-c".as_ref(), code.as_ref(), path.as_os_str()]);
+        assert_eq!(all.len() as u64, d["n"].as_u64().unwrap(), "{name}");
+        let theirs: Vec<&String> = d
+            .as_object()
+            .unwrap()
+            .keys()
+            .filter(|k| *k != "n")
+            .collect();
+        assert_eq!(names.len(), theirs.len(), "{name}: {names:?} vs {theirs:?}");
+        for n in &names {
+            let want = d[n.as_str()].as_array().unwrap();
+            let got = all.scalar(n).unwrap();
+            for (a, b) in got.iter().zip(want) {
+                assert_eq!(*a, b.as_f64().unwrap() as f32, "{name} {n}");
+            }
+        }
+    }
+}
+
+/// Our COPC as laspy's COPC reader reads it (by its octree, as a streaming viewer does): every point, every
+/// scalar an extra dimension equal to ours (float32), positions within half the 0.1 mm step, colours
+/// 8-bit × 257; the octree has levels below the root holding points, and our summary VLR is there for
+/// others to read, its kept count equal to the native filter's.
+#[test]
+fn laspy_reads_our_copc_with_every_extra_dimension() {
+    use silvr_core::copc::write::{write_copc, CopcInput, CopcOptions};
+    let Some(py) = scan_python() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let mut cloud = scene();
+    let n = cloud.len();
+    let names = [
+        "log_std_colour",
+        "log_std_depth",
+        "log_std_combined",
+        "submap",
+        "error_m",
+    ];
+    for (k, name) in names.iter().enumerate() {
+        cloud.set_scalar(
+            name,
+            (0..n)
+                .map(|i| ((i * (k + 3)) % 101) as f32 * 0.013 - 0.4 + (i % 7919) as f32 * 1e-4)
+                .collect(),
+        );
+    }
+    let path = tmp.path().join("map.copc.laz");
+    let w = write_copc(
+        CopcInput::Cloud(&cloud),
+        &path,
+        &CopcOptions {
+            points_per_node: 4000,
+        },
+    )
+    .unwrap();
+    assert_eq!(w.points as usize, n);
+    let code = "import json, sys, laspy\n\
+                r = laspy.CopcReader.open(sys.argv[1])\n\
+                f = r.query()\n\
+                d = {n: [float(v) for v in f[n]] for n in f.point_format.extra_dimension_names}\n\
+                d['xyz'] = [[float(a), float(b), float(c)] for a, b, c in zip(f.x, f.y, f.z)]\n\
+                d['red'] = [int(v) for v in f.red]\n\
+                d['root'] = len(r.level_query(0))\n\
+                d['level1'] = len(r.level_query(1))\n\
+                s = [v for v in r.header.vlrs if v.user_id == 'SiLVR' and v.record_id == 1]\n\
+                d['summary'] = json.loads(bytes(s[0].record_data)) if s else None\n\
+                print(json.dumps(d))";
+    let d = common::python_json(&py, &["-c".as_ref(), code.as_ref(), path.as_os_str()]);
+    // The octree's order is not ours: match laspy's points to ours by position.
+    let key = |p: DVec3| {
+        (
+            (p.x * 1e4).round() as i64,
+            (p.y * 1e4).round() as i64,
+            (p.z * 1e4).round() as i64,
+        )
+    };
+    let index: std::collections::HashMap<_, usize> = cloud
+        .positions
+        .iter()
+        .enumerate()
+        .map(|(i, p)| (key(*p), i))
+        .collect();
+    let xyz = d["xyz"].as_array().unwrap();
+    assert_eq!(xyz.len(), n, "laspy reads every point");
+    let mut seen = vec![false; n];
+    for (j, q) in xyz.iter().enumerate() {
+        let q = DVec3::new(
+            q[0].as_f64().unwrap(),
+            q[1].as_f64().unwrap(),
+            q[2].as_f64().unwrap(),
+        );
+        let i = *index
+            .get(&key(q))
+            .unwrap_or_else(|| panic!("laspy point {j} is not ours: {q}"));
+        assert!(!seen[i]);
+        seen[i] = true;
+        assert!((q - cloud.positions[i]).abs().max_element() <= 0.5e-4 + 1e-9);
+        for name in names {
+            let got = d[name][j]
+                .as_f64()
+                .unwrap_or_else(|| panic!("laspy has no {name}"));
+            assert_eq!(
+                got as f32,
+                cloud.scalar(name).unwrap()[i],
+                "{name} of point {i}"
+            );
+        }
+        assert_eq!(
+            d["red"][j].as_u64().unwrap(),
+            cloud.colors.as_ref().unwrap()[i][0] as u64 * 257
+        );
+    }
+    let (root, level1) = (d["root"].as_u64().unwrap(), d["level1"].as_u64().unwrap());
+    assert!(
+        root > 0 && level1 > 0 && (root as usize) < n,
+        "an octree: root {root}, level 1 {level1}"
+    );
+    let s = &d["summary"];
+    let v = cloud.scalar("log_std_combined").unwrap();
+    let t = silvr_core::uncertainty::filter::default_threshold(v);
+    assert_eq!(s["points"].as_u64().unwrap() as usize, n);
+    assert_eq!(
+        s["filter"]["kept"].as_u64().unwrap() as usize,
+        v.iter().filter(|&&x| x <= t).count()
+    );
+}
+
 /// A LAZ whose chunk table claims more chunks than its bytes can hold is refused before the `laz` crate
 /// reserves the table (laz 0.13 reserved the stated count: an abort on 2^32, found by the fuzz target).
 #[test]

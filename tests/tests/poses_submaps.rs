@@ -348,6 +348,20 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
         laz_bytes.windows(16).any(|w| w == b"log_std_combined"),
         "merged.laz names log_std_combined in its extra bytes"
     );
+    // Every merged point (unfiltered) as COPC for the studio (issue 36), with the summary of the default
+    // filter over the whole map: the count the native filter keeps of the same points.
+    let copc = out.join("merged.copc.laz");
+    let all = silvr_core::pointcloud::read_ply(&out.join("merged_unfiltered.ply")).unwrap();
+    let (points, summary) = silvr_core::copc::write::read_summary(&copc).unwrap();
+    assert_eq!(points, all.len() as u64);
+    let v = all.scalar("log_std_combined").unwrap();
+    let t = silvr_core::uncertainty::filter::default_threshold(v);
+    assert_eq!(
+        summary.expect("the summary VLR").filter.unwrap().kept as usize,
+        v.iter().filter(|&&x| x <= t).count()
+    );
+    let read = silvr_core::eval::scan::read_scan(&copc, None, None).unwrap();
+    assert_eq!(read.cloud.len(), all.len());
     let kept: u64 = report["per_submap"]
         .as_array()
         .unwrap()

@@ -126,10 +126,10 @@ pub fn read_scan_bytes(
 const READER_STACK_BYTES: usize = 1 << 30;
 
 /// Runs `f` on a thread with [`READER_STACK_BYTES`] of stack.
-fn on_reader_stack(
+fn on_reader_stack<T: Send>(
     path: &Path,
-    f: impl FnOnce() -> Result<Scan, ScanError> + Send,
-) -> Result<Scan, ScanError> {
+    f: impl FnOnce() -> Result<T, ScanError> + Send,
+) -> Result<T, ScanError> {
     std::thread::scope(|s| {
         let thread = std::thread::Builder::new()
             .name("scan-reader".into())
@@ -702,6 +702,171 @@ fn read_with(
         format,
         points_read: read,
         notes,
+    })
+}
+
+/// One numeric extra-bytes dimension of a LAS file (LAS 1.4 R15 §2.6.3): where it sits in a point's extra
+/// bytes, its type, and the scale and offset its descriptor states.
+#[derive(Clone, Debug, PartialEq)]
+struct ExtraDim {
+    name: String,
+    at: usize,
+    data_type: u8,
+    scale: f64,
+    offset: f64,
+}
+
+/// Bytes of an extra-bytes data type: 1–10 the scalars, 11–30 the deprecated 2- and 3-arrays of them, 0
+/// an undefined run of `options` bytes.
+fn extra_type_bytes(data_type: u8, options: u8) -> Option<usize> {
+    const BASE: [usize; 10] = [1, 1, 2, 2, 4, 4, 8, 8, 4, 8];
+    match data_type {
+        0 => Some(options as usize),
+        1..=10 => Some(BASE[data_type as usize - 1]),
+        11..=20 => Some(2 * BASE[data_type as usize - 11]),
+        21..=30 => Some(3 * BASE[data_type as usize - 21]),
+        _ => None,
+    }
+}
+
+/// The scalar (types 1–10) extra dimensions the header's descriptors name, within `extra_bytes` bytes a
+/// point; a descriptor of an unknown type ends the list (what follows cannot be located).
+fn extra_dims(header: &las::Header, extra_bytes: usize) -> Vec<ExtraDim> {
+    let Some(vlr) = header
+        .all_vlrs()
+        .find(|v| v.user_id == "LASF_Spec" && v.record_id == 4)
+    else {
+        return Vec::new();
+    };
+    let f64_at = |d: &[u8], k: usize| f64::from_le_bytes(d[k..k + 8].try_into().unwrap_or([0; 8]));
+    let mut out = Vec::new();
+    let mut at = 0usize;
+    for d in vlr.data.chunks_exact(192) {
+        let (data_type, options) = (d[2], d[3]);
+        let Some(size) = extra_type_bytes(data_type, options) else {
+            break;
+        };
+        if at + size > extra_bytes {
+            break;
+        }
+        if (1..=10).contains(&data_type) {
+            let name_bytes = &d[4..36];
+            let end = name_bytes.iter().position(|&b| b == 0).unwrap_or(32);
+            let name = String::from_utf8_lossy(&name_bytes[..end])
+                .trim()
+                .to_string();
+            let scale = if options & 0b1000 != 0 {
+                f64_at(d, 112)
+            } else {
+                1.0
+            };
+            let offset = if options & 0b1_0000 != 0 {
+                f64_at(d, 136)
+            } else {
+                0.0
+            };
+            if !name.is_empty() && scale.is_finite() && offset.is_finite() {
+                out.push(ExtraDim {
+                    name,
+                    at,
+                    data_type,
+                    scale,
+                    offset,
+                });
+            }
+        }
+        at += size;
+    }
+    out
+}
+
+impl ExtraDim {
+    fn value(&self, extra: &[u8]) -> f32 {
+        let b = &extra[self.at..];
+        let raw = match self.data_type {
+            1 => b[0] as f64,
+            2 => b[0] as i8 as f64,
+            3 => u16::from_le_bytes([b[0], b[1]]) as f64,
+            4 => i16::from_le_bytes([b[0], b[1]]) as f64,
+            5 => u32::from_le_bytes(b[..4].try_into().unwrap_or([0; 4])) as f64,
+            6 => i32::from_le_bytes(b[..4].try_into().unwrap_or([0; 4])) as f64,
+            7 => u64::from_le_bytes(b[..8].try_into().unwrap_or([0; 8])) as f64,
+            8 => i64::from_le_bytes(b[..8].try_into().unwrap_or([0; 8])) as f64,
+            9 => f32::from_le_bytes(b[..4].try_into().unwrap_or([0; 4])) as f64,
+            _ => f64::from_le_bytes(b[..8].try_into().unwrap_or([0; 8])),
+        };
+        // A float stored as float stays bit-exact; the rest go through their stated scale and offset.
+        if self.data_type == 9 && self.scale == 1.0 && self.offset == 0.0 {
+            return f32::from_le_bytes(b[..4].try_into().unwrap_or([0; 4]));
+        }
+        (raw * self.scale + self.offset) as f32
+    }
+}
+
+/// Reads a LAS/LAZ file (COPC included) in chunks of at most `per_chunk` points with positions, colours
+/// (8-bit) and every numeric extra-bytes dimension as a scalar, and hands each chunk to `f` (on the
+/// reader's thread). The file is checked as [`read_scan`] checks it, and a reader panic is an error.
+/// Returns the scalars' names.
+pub fn read_las_chunks(
+    path: &Path,
+    per_chunk: usize,
+    f: &mut (dyn FnMut(&PointCloud) -> Result<(), String> + Send),
+) -> Result<Vec<String>, ScanError> {
+    on_reader_stack(path, || {
+        let mut file = std::fs::File::open(path).map_err(|e| err(path, e.to_string()))?;
+        check_las_header(&mut file).map_err(|e| err(path, e))?;
+        let mut r = caught(path, "reading the header", || las::Reader::from_path(path))?
+            .map_err(|e| err(path, e.to_string()))?;
+        let extra_bytes = r.header().point_format().extra_bytes as usize;
+        let dims = extra_dims(r.header(), extra_bytes);
+        let names: Vec<String> = dims.iter().map(|d| d.name.clone()).collect();
+        let mut batch = las::PointDataBuilder::new().for_header(r.header()).build();
+        let per_batch = ((16u64 << 20) / batch.record_len().max(1) as u64).clamp(1, 1 << 16);
+        let mut chunk = PointCloud::new();
+        let mut read = 0u64;
+        let flush =
+            |chunk: &mut PointCloud,
+             f: &mut (dyn FnMut(&PointCloud) -> Result<(), String> + Send)| {
+                let out = f(chunk).map_err(|e| err(path, e));
+                *chunk = PointCloud::new();
+                out
+            };
+        loop {
+            let n = caught(path, &format!("decoding after {read} points"), || {
+                r.fill_points(per_batch, &mut batch)
+            })?
+            .map_err(|e| err(path, e.to_string()))?;
+            if n == 0 {
+                break;
+            }
+            for p in batch.points() {
+                let p = p.map_err(|e| err(path, e.to_string()))?;
+                read += 1;
+                if chunk.is_empty() {
+                    chunk.colors = Some(Vec::new());
+                    chunk.scalars = names.iter().map(|n| (n.clone(), Vec::new())).collect();
+                }
+                let c = p
+                    .color
+                    .map_or([0; 3], |c| [c.red, c.green, c.blue].map(|v| (v >> 8) as u8));
+                // `push_colored` pads every scalar with NaN; the values then replace the padding.
+                chunk.push_colored(DVec3::new(p.x, p.y, p.z), c);
+                if p.extra_bytes.len() >= extra_bytes {
+                    for (d, (_, v)) in dims.iter().zip(&mut chunk.scalars) {
+                        if let Some(last) = v.last_mut() {
+                            *last = d.value(&p.extra_bytes);
+                        }
+                    }
+                }
+                if chunk.len() >= per_chunk.max(1) {
+                    flush(&mut chunk, f)?;
+                }
+            }
+        }
+        if !chunk.is_empty() {
+            flush(&mut chunk, f)?;
+        }
+        Ok(names)
     })
 }
 
