@@ -5,6 +5,7 @@
 #                                           SILVR_FUZZ_SMOKE_SECS (default 4) seconds
 #   targets: cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar
 #            npz mcap http_head kitti_text ros1_bag ros1_definition rosbag2_metadata rosbag2_db3 scan_file
+#            copc_file
 # Runs on stable Rust with `--sanitizer none` (the parsers are safe Rust: the fuzzer hunts panics, hangs,
 # overflow checks — debug assertions are on — and runaway allocation, capped by -rss_limit_mb). Installs
 # cargo-fuzz when missing. Seeds: fuzz/seeds/<target> (committed); the growing corpus and any crash
@@ -12,7 +13,7 @@
 # or when a target does not build (2).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-all=(cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar npz mcap http_head kitti_text ros1_bag ros1_definition rosbag2_metadata rosbag2_db3 scan_file)
+all=(cdr pcd ply transforms_json rig_yaml colmap poses kitti_bin checkpoint view_link submap_tar npz mcap http_head kitti_text ros1_bag ros1_definition rosbag2_metadata rosbag2_db3 scan_file copc_file)
 smoke=0
 if [ "${1:-}" = --smoke ]; then
   smoke=1

@@ -8,6 +8,9 @@
 //! The summary is read here (wasm32 too: the studio's worker reads it from the header it fetched); the
 //! writer is native ([`write`]).
 
+pub mod extra_bytes;
+pub mod lod;
+pub mod read;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod write;
 

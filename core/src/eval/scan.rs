@@ -384,7 +384,6 @@ fn check_laz_layers(
     at: &mut impl FnMut(u64, usize) -> Result<Option<Vec<u8>>, String>,
     f: LazLayout,
 ) -> Result<(), String> {
-    use laz::LazItemType as T;
     let LazLayout {
         header_size,
         n_vlrs,
@@ -415,42 +414,7 @@ fn check_laz_layers(
         pos += 54 + body_len as u64;
     }
     let Some(vlr) = vlr else { return Ok(()) };
-    let items = vlr.items();
-    // laz 0.13 expects at least one item (a panic otherwise; the fuzz target's fifth find).
-    if items.is_empty() {
-        return Err("the LASzip VLR lists no point items (corrupt file)".into());
-    }
-    // Each item has its type's size, and together they make the header's point record (what LASzip
-    // itself requires; laz 0.13 trusts both and reads past them: the fuzz target's eighth find).
-    let mut first_point = 0u64;
-    let mut layers = 0u64;
-    let mut layered = true;
-    for item in items {
-        let (size, item_layers) = match item.item_type() {
-            T::Point10 => (20, None),
-            T::GpsTime => (8, None),
-            T::RGB12 => (6, None),
-            T::WavePacket13 => (29, None),
-            T::Byte(n) => (n, None),
-            T::Point14 => (30, Some(9)),
-            T::RGB14 => (6, Some(1)),
-            T::RGBNIR14 => (8, Some(2)),
-            T::WavePacket14 => (29, Some(1)),
-            T::Byte14(n) => (n, Some(n as u64)),
-        };
-        if item.size() != size {
-            return Err(format!(
-                "the LASzip VLR's {:?} item is {} bytes; that item is {size} (corrupt file)",
-                item.item_type(),
-                item.size()
-            ));
-        }
-        first_point += size as u64;
-        match item_layers {
-            Some(n) => layers += n,
-            None => layered = false,
-        }
-    }
+    let (first_point, layers) = crate::copc::read::laz_item_layout(vlr.items())?;
     if first_point != record_len {
         return Err(format!(
             "the LASzip items make {first_point}-byte points, but the header's records are {record_len} \
@@ -458,9 +422,9 @@ fn check_laz_layers(
         ));
     }
     // Point-wise (pre-1.4) items have no layers.
-    if !layered {
+    let Some(layers) = layers else {
         return Ok(());
-    }
+    };
     // Every chunk laz may read, each within the file. laz reads chunks one after another (each starts
     // where the previous one's layers end) while points remain, and it bounds a chunk by the chunk size,
     // by the table's point counts or by the count inside the chunk, depending on the file. So the walk
@@ -705,104 +669,6 @@ fn read_with(
     })
 }
 
-/// One numeric extra-bytes dimension of a LAS file (LAS 1.4 R15 §2.6.3): where it sits in a point's extra
-/// bytes, its type, and the scale and offset its descriptor states.
-#[derive(Clone, Debug, PartialEq)]
-struct ExtraDim {
-    name: String,
-    at: usize,
-    data_type: u8,
-    scale: f64,
-    offset: f64,
-}
-
-/// Bytes of an extra-bytes data type: 1–10 the scalars, 11–30 the deprecated 2- and 3-arrays of them, 0
-/// an undefined run of `options` bytes.
-fn extra_type_bytes(data_type: u8, options: u8) -> Option<usize> {
-    const BASE: [usize; 10] = [1, 1, 2, 2, 4, 4, 8, 8, 4, 8];
-    match data_type {
-        0 => Some(options as usize),
-        1..=10 => Some(BASE[data_type as usize - 1]),
-        11..=20 => Some(2 * BASE[data_type as usize - 11]),
-        21..=30 => Some(3 * BASE[data_type as usize - 21]),
-        _ => None,
-    }
-}
-
-/// The scalar (types 1–10) extra dimensions the header's descriptors name, within `extra_bytes` bytes a
-/// point; a descriptor of an unknown type ends the list (what follows cannot be located).
-fn extra_dims(header: &las::Header, extra_bytes: usize) -> Vec<ExtraDim> {
-    let Some(vlr) = header
-        .all_vlrs()
-        .find(|v| v.user_id == "LASF_Spec" && v.record_id == 4)
-    else {
-        return Vec::new();
-    };
-    let f64_at = |d: &[u8], k: usize| f64::from_le_bytes(d[k..k + 8].try_into().unwrap_or([0; 8]));
-    let mut out = Vec::new();
-    let mut at = 0usize;
-    for d in vlr.data.chunks_exact(192) {
-        let (data_type, options) = (d[2], d[3]);
-        let Some(size) = extra_type_bytes(data_type, options) else {
-            break;
-        };
-        if at + size > extra_bytes {
-            break;
-        }
-        if (1..=10).contains(&data_type) {
-            let name_bytes = &d[4..36];
-            let end = name_bytes.iter().position(|&b| b == 0).unwrap_or(32);
-            let name = String::from_utf8_lossy(&name_bytes[..end])
-                .trim()
-                .to_string();
-            let scale = if options & 0b1000 != 0 {
-                f64_at(d, 112)
-            } else {
-                1.0
-            };
-            let offset = if options & 0b1_0000 != 0 {
-                f64_at(d, 136)
-            } else {
-                0.0
-            };
-            if !name.is_empty() && scale.is_finite() && offset.is_finite() {
-                out.push(ExtraDim {
-                    name,
-                    at,
-                    data_type,
-                    scale,
-                    offset,
-                });
-            }
-        }
-        at += size;
-    }
-    out
-}
-
-impl ExtraDim {
-    fn value(&self, extra: &[u8]) -> f32 {
-        let b = &extra[self.at..];
-        let raw = match self.data_type {
-            1 => b[0] as f64,
-            2 => b[0] as i8 as f64,
-            3 => u16::from_le_bytes([b[0], b[1]]) as f64,
-            4 => i16::from_le_bytes([b[0], b[1]]) as f64,
-            5 => u32::from_le_bytes(b[..4].try_into().unwrap_or([0; 4])) as f64,
-            6 => i32::from_le_bytes(b[..4].try_into().unwrap_or([0; 4])) as f64,
-            7 => u64::from_le_bytes(b[..8].try_into().unwrap_or([0; 8])) as f64,
-            8 => i64::from_le_bytes(b[..8].try_into().unwrap_or([0; 8])) as f64,
-            9 => f32::from_le_bytes(b[..4].try_into().unwrap_or([0; 4])) as f64,
-            _ => f64::from_le_bytes(b[..8].try_into().unwrap_or([0; 8])),
-        };
-        // A float stored as float stays bit-exact; the rest go through their stated scale and offset.
-        if self.data_type == 9 && self.scale == 1.0 && self.offset == 0.0 {
-            return f32::from_le_bytes(b[..4].try_into().unwrap_or([0; 4]));
-        }
-        (raw * self.scale + self.offset) as f32
-    }
-}
-
 /// Reads a LAS/LAZ file (COPC included) in chunks of at most `per_chunk` points with positions, colours
 /// (8-bit) and every numeric extra-bytes dimension as a scalar, and hands each chunk to `f` (on the
 /// reader's thread). The file is checked as [`read_scan`] checks it, and a reader panic is an error.
@@ -818,7 +684,13 @@ pub fn read_las_chunks(
         let mut r = caught(path, "reading the header", || las::Reader::from_path(path))?
             .map_err(|e| err(path, e.to_string()))?;
         let extra_bytes = r.header().point_format().extra_bytes as usize;
-        let dims = extra_dims(r.header(), extra_bytes);
+        let dims = r
+            .header()
+            .all_vlrs()
+            .find(|v| v.user_id == "LASF_Spec" && v.record_id == 4)
+            .map_or_else(Vec::new, |v| {
+                crate::copc::extra_bytes::descriptors(&v.data, extra_bytes)
+            });
         let names: Vec<String> = dims.iter().map(|d| d.name.clone()).collect();
         let mut batch = las::PointDataBuilder::new().for_header(r.header()).build();
         let per_batch = ((16u64 << 20) / batch.record_len().max(1) as u64).clamp(1, 1 << 16);
