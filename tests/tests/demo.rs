@@ -97,6 +97,27 @@ fn demo_ci_on_wgsl_reports_lidar_vision_and_silvr_with_silvr_beating_vision() {
         ] {
             std::fs::copy(out.join(from), dir.join(to)).unwrap();
         }
+        // The same cloud as COPC, by the CLI (`silvr export copc`): the studio opens it by byte ranges.
+        let copc = dir.join("points.copc.laz");
+        let run = Command::new(build_silvr())
+            .args(["export", "copc"])
+            .arg(out.join("silvr/points.ply"))
+            .arg("--out")
+            .arg(&copc)
+            .output()
+            .unwrap();
+        let said = String::from_utf8_lossy(&run.stdout);
+        assert!(
+            run.status.success() && said.contains("summary: the default filter"),
+            "silvr export copc: {said}{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let (points, summary) = silvr_core::copc::write::read_summary(&copc).unwrap();
+        let filtered = silvr_core::pointcloud::read_ply(&out.join("silvr/points_filtered.ply"))
+            .unwrap()
+            .len();
+        let kept = summary.unwrap().filter.unwrap().kept;
+        assert_eq!(kept as usize, filtered, "{points} points");
     }
 
     // The trained fields: same geometry keys plus image quality, and SiLVR ahead of vision-only.

@@ -269,17 +269,17 @@ pub fn worker_listening() {
     }
 }
 
-/// Opens dropped or chosen `.ply` files as layers; other files are named and left alone.
+/// Opens dropped or chosen `.ply` and `.copc.laz` files as layers; other files are named and left alone.
 pub fn open_files(files: &[File]) {
     let Some(v) = viewer() else { return };
     for f in files {
         let name = f.name();
         let lower = name.to_ascii_lowercase();
-        if !(lower.ends_with(".ply") || lower.ends_with(".json")) {
+        if !(lower.ends_with(".ply") || lower.ends_with(".json") || lower.ends_with(".copc.laz")) {
             message(
                 "warn",
                 &format!(
-                    "{}: not a .ply or transforms.json; the view opens PLY reconstructions and a dataset's cameras",
+                    "{}: not a .ply, .copc.laz or transforms.json; the view opens PLY and COPC maps and a dataset's cameras",
                     short(&name)
                 ),
             );
@@ -817,6 +817,15 @@ fn show_layers(v: &Shared) {
     for l in &b.layers {
         let li = text_el(&doc, "li", "", "");
         li.set_attribute("data-index", &l.index.to_string()).ok();
+        li.set_attribute("data-points", &l.points.to_string()).ok();
+        li.set_attribute("data-total", &l.total.to_string()).ok();
+        if let Some(lod) = &l.lod {
+            li.set_attribute("data-budget", &lod.budget.to_string())
+                .ok();
+            if let Some(k) = lod.summary_kept {
+                li.set_attribute("data-summary-kept", &k.to_string()).ok();
+            }
+        }
         let label = text_el(&doc, "label", "", "");
         let Ok(cb) = doc.create_element("input") else {
             continue;
@@ -856,7 +865,25 @@ fn show_layers(v: &Shared) {
         )
         .ok();
         label.append_child(&sw).ok();
-        let decimated = if l.stride > 1 {
+        let decimated = if let Some(lod) = &l.lod {
+            // A COPC map: what the level of detail loaded, and the whole map's filter count from the
+            // file's summary (the kept count below is of the loaded points).
+            let whole = match lod.summary_kept {
+                Some(k) => format!(
+                    "; the default filter keeps {} of all {} (the file's summary)",
+                    group_digits(k),
+                    group_digits(l.total)
+                ),
+                None => String::new(),
+            };
+            format!(
+                " of {} loaded (level of detail: {} of {} octree nodes, budget {}){whole}",
+                group_digits(l.total),
+                lod.nodes,
+                lod.nodes_total,
+                group_digits(lod.budget)
+            )
+        } else if l.stride > 1 {
             format!(", 1 in {} of {}", l.stride, group_digits(l.total))
         } else {
             String::new()

@@ -203,3 +203,127 @@ pub(crate) async fn fetch_bytes(
     };
     read_stream(body, total, id, url).await
 }
+
+/// Where a COPC map's bytes come from: a URL read by HTTP range requests, or a dropped file read by
+/// slices (`Blob.slice`), so neither is read whole.
+pub(crate) enum RangeSource {
+    Url { url: String, token: Option<String> },
+    File(web_sys::File),
+}
+
+impl RangeSource {
+    /// Bytes `offset`..`offset + size`, and the file's length when the answer states it.
+    pub(crate) async fn range(
+        &self,
+        offset: u64,
+        size: u64,
+    ) -> Result<(Vec<u8>, Option<u64>), String> {
+        if size == 0 {
+            return Ok((Vec::new(), None));
+        }
+        match self {
+            RangeSource::File(file) => {
+                let len = file.size() as u64;
+                if offset.saturating_add(size) > len {
+                    return Err(format!(
+                        "bytes {offset}..+{size} lie past the file's end ({len} bytes)"
+                    ));
+                }
+                let blob = file
+                    .slice_with_f64_and_f64(offset as f64, (offset + size) as f64)
+                    .map_err(|e| js_text(&e))?;
+                let buf = wasm_bindgen_futures::JsFuture::from(blob.array_buffer())
+                    .await
+                    .map_err(|e| format!("the file could not be read: {}", js_text(&e)))?;
+                Ok((js_sys::Uint8Array::new(&buf).to_vec(), Some(len)))
+            }
+            RangeSource::Url { url, token } => {
+                fetch_range(url, token.as_deref(), offset, size).await
+            }
+        }
+    }
+}
+
+/// One HTTP range request; the server must answer 206 with exactly those bytes (a server that ignores
+/// ranges would send the whole map: refused, with the reason).
+async fn fetch_range(
+    url: &str,
+    token: Option<&str>,
+    offset: u64,
+    size: u64,
+) -> Result<(Vec<u8>, Option<u64>), String> {
+    let scope: web_sys::WorkerGlobalScope = js_sys::global().unchecked_into();
+    let headers = web_sys::Headers::new().map_err(|e| js_text(&e))?;
+    headers
+        .set("Range", &format!("bytes={offset}-{}", offset + size - 1))
+        .map_err(|e| js_text(&e))?;
+    let init = web_sys::RequestInit::new();
+    if let Some(token) = token.filter(|_| same_origin(url)) {
+        headers
+            .set(TOKEN_HEADER, token)
+            .map_err(|e| format!("the access token cannot be sent: {}", js_text(&e)))?;
+        init.set_redirect(web_sys::RequestRedirect::Error);
+    }
+    init.set_headers(&headers);
+    let response = wasm_bindgen_futures::JsFuture::from(scope.fetch_with_str_and_init(url, &init))
+        .await
+        .map_err(|e| {
+            format!(
+                "could not be fetched: the server is unreachable or refused the studio's origin (CORS) ({})",
+                js_text(&e)
+            )
+        })?
+        .unchecked_into::<web_sys::Response>();
+    match response.status() {
+        206 => {}
+        200 => return Err(
+            "the server does not answer byte-range requests (HTTP 200 for bytes of a COPC map); \
+                 serve it with `silvr serve` or any server that does"
+                .into(),
+        ),
+        s => {
+            return Err(format!(
+                "the server answered HTTP {s} {} for bytes {offset}..+{size}",
+                response.status_text()
+            ))
+        }
+    }
+    // A body larger than asked is not read (a hostile server).
+    let declared = response
+        .headers()
+        .get("content-length")
+        .ok()
+        .flatten()
+        .and_then(|v| v.trim().parse::<u64>().ok());
+    if declared.is_some_and(|d| d > size) {
+        return Err(format!(
+            "asked for {size} bytes, the server announces {}",
+            declared.unwrap_or(0)
+        ));
+    }
+    // `Content-Range: bytes a-b/LEN` (LEN may be `*`).
+    let len = response
+        .headers()
+        .get("content-range")
+        .ok()
+        .flatten()
+        .and_then(|v| {
+            v.rsplit('/')
+                .next()
+                .and_then(|n| n.trim().parse::<u64>().ok())
+        });
+    let buf =
+        wasm_bindgen_futures::JsFuture::from(response.array_buffer().map_err(|e| js_text(&e))?)
+            .await
+            .map_err(|e| format!("the transfer broke off: {}", js_text(&e)))?;
+    let bytes = js_sys::Uint8Array::new(&buf).to_vec();
+    // A last range may end at the file's end; any other length is a server's error.
+    let expected = len.map_or(size, |l| size.min(l.saturating_sub(offset)));
+    if bytes.len() as u64 != expected {
+        return Err(format!(
+            "asked for bytes {offset}..+{size}, the server sent {}",
+            bytes.len()
+        ));
+    }
+    Ok((bytes, len))
+}

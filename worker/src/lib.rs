@@ -26,6 +26,7 @@ use silvr_core::camera::{CameraModel, Distortion};
 use silvr_core::gpu::{AdapterReport, Gpu};
 use silvr_core::lidar::project::{self, SelfCheck};
 
+pub mod copc;
 #[cfg(target_arch = "wasm32")]
 mod js;
 pub mod studio;

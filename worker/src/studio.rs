@@ -74,6 +74,9 @@ pub struct LayerInfo {
     pub has_rgb: bool,
     pub scalars: Vec<ScalarInfo>,
     pub gpu_bytes: u64,
+    /// A COPC map's level of detail: what was loaded of the octree (`points` of `total`).
+    #[serde(default)]
+    pub lod: Option<crate::copc::LodInfo>,
 }
 
 /// A layer: the view cloud, and its GPU buffers once a device drew it.
@@ -112,7 +115,7 @@ pub fn parse_layer(bytes: &[u8], name: &str, source: &str, index: u32) -> Result
 
 impl Layer {
     /// A layer of `view`, described for the page.
-    fn new(view: ViewCloud, name: String, source: &str, index: u32) -> Self {
+    pub(crate) fn new(view: ViewCloud, name: String, source: &str, index: u32) -> Self {
         let scalars = view
             .scalars
             .iter()
@@ -145,6 +148,7 @@ impl Layer {
                 has_rgb: view.has_rgb,
                 scalars,
                 gpu_bytes: 0,
+                lod: None,
             },
             cloud: view,
             gpu: None,

@@ -9,7 +9,10 @@ use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::spawn_local;
 use web_sys::MessageEvent;
 
-use crate::js::{fetch_bytes, get, post, post_bytes, read_stream, scope, sleep_ms, url_file_name};
+use crate::copc;
+use crate::js::{
+    fetch_bytes, get, post, post_bytes, read_stream, scope, sleep_ms, url_file_name, RangeSource,
+};
 use crate::studio::{parse_cameras, parse_layer, Layers, MAX_FILE_BYTES, MAX_LAYERS};
 use crate::view::{is_fetchable, Camera, ViewState};
 use crate::{
@@ -616,6 +619,13 @@ async fn open_url(studio: Rc<RefCell<Studio>>, id: u32, url: String, token: Opti
         return fail("only http: and https: URLs are opened".into());
     }
     let name = url_file_name(&url, "points.ply");
+    if is_copc(&name) {
+        let src = RangeSource::Url {
+            url: url.clone(),
+            token,
+        };
+        return open_copc(&studio, id, src, &name, &url).await;
+    }
     match fetch_bytes(&url, id, token.as_deref()).await {
         Ok(bytes) => add_layer(&studio, id, &bytes, &name, &url),
         Err(e) => fail(e),
@@ -625,6 +635,10 @@ async fn open_url(studio: Rc<RefCell<Studio>>, id: u32, url: String, token: Opti
 async fn open_file(studio: Rc<RefCell<Studio>>, id: u32, file: web_sys::File) {
     let name = file.name();
     let source = format!("file:{name}");
+    if is_copc(&name) {
+        // Read by slices: a dropped map larger than the studio's file limit opens too.
+        return open_copc(&studio, id, RangeSource::File(file), &name, &source).await;
+    }
     let size = file.size();
     if size > MAX_FILE_BYTES as f64 {
         return post(&ToPage::LoadError {
@@ -645,6 +659,104 @@ async fn open_file(studio: Rc<RefCell<Studio>>, id: u32, file: web_sys::File) {
             message,
         }),
     }
+}
+
+fn is_copc(name: &str) -> bool {
+    name.to_ascii_lowercase().ends_with(".copc.laz")
+}
+
+/// Opens a COPC map by byte ranges: its head, its hierarchy, then the octree nodes the fitted camera
+/// sees within [`copc::DEFAULT_BUDGET`] points, each decoded here as it arrives. The layer holds those;
+/// its counts over the whole map come from the file's summary, when it has one.
+async fn open_copc(
+    studio: &Rc<RefCell<Studio>>,
+    id: u32,
+    src: RangeSource,
+    name: &str,
+    source: &str,
+) {
+    let fail = |message: String| {
+        post(&ToPage::LoadError {
+            id,
+            source: source.to_string(),
+            message,
+        })
+    };
+    if studio.borrow().layers.layers.len() >= MAX_LAYERS {
+        return fail(format!(
+            "the studio holds at most {MAX_LAYERS} layers; close one first"
+        ));
+    }
+    match load_copc(&src, id, name, source).await {
+        Ok((cloud, lod, total)) => {
+            let view = silvr_core::viewer::ViewCloud::from_cloud(
+                &cloud,
+                silvr_core::viewer::ViewCloud::MAX_POINTS,
+            );
+            drop(cloud);
+            if view.is_empty() {
+                return fail(format!("{name}: no point has finite coordinates"));
+            }
+            let mut layer = crate::studio::Layer::new(view, name.to_string(), source, id);
+            layer.info.total = total;
+            layer.info.lod = Some(lod);
+            insert_layer(studio, id, layer);
+        }
+        Err(message) => fail(message),
+    }
+}
+
+async fn load_copc(
+    src: &RangeSource,
+    id: u32,
+    name: &str,
+    source: &str,
+) -> Result<(silvr_core::pointcloud::PointCloud, copc::LodInfo, u64), String> {
+    use silvr_core::copc::read::{
+        decode_node, head_len, parse_head, HierarchyWalk, LAS_HEADER_BYTES,
+    };
+    let progress = |stage: &str, loaded: f64, total: Option<f64>| {
+        post(&ToPage::Progress {
+            id,
+            source: source.to_string(),
+            stage: stage.into(),
+            loaded,
+            total,
+        })
+    };
+    let (first, mut file_len) = src.range(0, LAS_HEADER_BYTES as u64).await?;
+    let n = head_len(&first, name).map_err(|e| e.to_string())?;
+    let (head_bytes, len) = src.range(0, n).await?;
+    file_len = file_len.or(len);
+    let head = parse_head(&head_bytes, name).map_err(|e| e.to_string())?;
+    let mut walk = HierarchyWalk::new(&head, file_len, name);
+    while let Some(r) = walk.next_page().map_err(|e| e.to_string())? {
+        let (bytes, _) = src.range(r.offset, r.size).await?;
+        walk.add_page(r, &bytes).map_err(|e| e.to_string())?;
+    }
+    let entries = walk.finish();
+    let chosen = copc::choose(&head, &entries, copc::DEFAULT_BUDGET);
+    let want: u64 = chosen.iter().map(|e| e.point_count.max(0) as u64).sum();
+    let origin = head.center();
+    let mut nodes = Vec::with_capacity(chosen.len());
+    let mut loaded = 0u64;
+    for e in &chosen {
+        let (bytes, _) = src.range(e.offset, e.byte_size as u64).await?;
+        let pts = decode_node(&head, e, &bytes, origin, name).map_err(|e| e.to_string())?;
+        loaded += pts.positions.len() as u64;
+        nodes.push(pts);
+        progress("decode", loaded as f64, Some(want as f64));
+    }
+    let cloud = copc::cloud_of(&head, origin, &nodes);
+    let filter = head.summary.as_ref().and_then(|s| s.filter.as_ref());
+    let lod = copc::LodInfo {
+        nodes: chosen.len() as u32,
+        nodes_total: entries.len() as u32,
+        budget: copc::DEFAULT_BUDGET,
+        summary_kept: filter.map(|f| f.kept),
+        summary_threshold: filter.and_then(|f| f.threshold),
+    };
+    Ok((cloud, lod, head.points))
 }
 
 fn add_layer(studio: &Rc<RefCell<Studio>>, id: u32, bytes: &[u8], name: &str, source: &str) {
@@ -674,33 +786,37 @@ fn add_layer(studio: &Rc<RefCell<Studio>>, id: u32, bytes: &[u8], name: &str, so
         parse_layer(bytes, name, source, index)
     };
     match parsed {
-        Ok(layer) => {
-            {
-                let mut s = studio.borrow_mut();
-                s.layers.layers.retain(|l| l.info.index != index);
-                s.layers.layers.push(layer);
-                s.layers.layers.sort_by_key(|l| l.info.index);
-            }
-            upload_pending(studio);
-            let info = studio
-                .borrow()
-                .layers
-                .layers
-                .iter()
-                .find(|l| l.info.index == index)
-                .map(|l| l.info.clone());
-            if let Some(layer) = info {
-                post(&ToPage::Layer { id, layer });
-            }
-            draw(studio);
-            report_counts(studio);
-        }
+        Ok(layer) => insert_layer(studio, id, layer),
         Err(message) => post(&ToPage::LoadError {
             id,
             source: source.to_string(),
             message,
         }),
     }
+}
+
+/// Adds (or replaces) layer `id`, uploads it, tells the page and draws.
+fn insert_layer(studio: &Rc<RefCell<Studio>>, id: u32, layer: crate::studio::Layer) {
+    let index = id;
+    {
+        let mut s = studio.borrow_mut();
+        s.layers.layers.retain(|l| l.info.index != index);
+        s.layers.layers.push(layer);
+        s.layers.layers.sort_by_key(|l| l.info.index);
+    }
+    upload_pending(studio);
+    let info = studio
+        .borrow()
+        .layers
+        .layers
+        .iter()
+        .find(|l| l.info.index == index)
+        .map(|l| l.info.clone());
+    if let Some(layer) = info {
+        post(&ToPage::Layer { id, layer });
+    }
+    draw(studio);
+    report_counts(studio);
 }
 
 /// Draws `frames` frames, each after the previous one finished on the GPU, and reports ms per frame.

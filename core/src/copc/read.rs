@@ -9,7 +9,9 @@
 
 use std::io::Cursor;
 
-use copc_core::{CopcInfo, Entry, EntryAvailability, HierarchyPage, VoxelKey};
+/// The hierarchy's types (copc-core's), for the readers above this module.
+pub use copc_core::{CopcInfo, Entry, VoxelKey};
+use copc_core::{EntryAvailability, HierarchyPage};
 use glam::DVec3;
 use laz::record::{LayeredPointRecordDecompressor, RecordDecompressor};
 
@@ -382,21 +384,37 @@ pub fn parse_page(
     Ok(entries)
 }
 
-/// The whole hierarchy: every node with points, reading pages through `read` (offset, size → bytes),
-/// the root first. Pages are visited once each (a page that names itself or an earlier one is refused),
-/// within [`MAX_PAGES`] and [`MAX_ENTRIES`]. For readers that can block (the CLI, tests); the worker walks
-/// pages itself, asynchronously, with [`parse_page`].
-pub fn walk_hierarchy(
-    head: &CopcHead,
+/// A walk of the hierarchy's pages, the root first, for a reader that fetches as it likes (the worker,
+/// asynchronously): take [`HierarchyWalk::next_page`], fetch it, hand it to [`HierarchyWalk::add_page`],
+/// until there is none; then [`HierarchyWalk::finish`]. Pages are visited once each (a page that names
+/// itself or an earlier one is refused), within [`MAX_PAGES`] and [`MAX_ENTRIES`].
+pub struct HierarchyWalk {
+    pending: Vec<Range>,
+    seen: std::collections::HashSet<u64>,
+    nodes: Vec<Entry>,
+    entries: usize,
     file_len: Option<u64>,
-    source: &str,
-    read: &mut dyn FnMut(Range) -> Result<Vec<u8>, String>,
-) -> Result<Vec<Entry>, CopcReadError> {
-    let mut pending = vec![head.root_page()];
-    let mut seen = std::collections::HashSet::new();
-    let mut nodes = Vec::new();
-    let mut entries = 0usize;
-    while let Some(r) = pending.pop() {
+    source: String,
+}
+
+impl HierarchyWalk {
+    pub fn new(head: &CopcHead, file_len: Option<u64>, source: &str) -> Self {
+        Self {
+            pending: vec![head.root_page()],
+            seen: Default::default(),
+            nodes: Vec::new(),
+            entries: 0,
+            file_len,
+            source: source.to_string(),
+        }
+    }
+
+    /// The next page to read, checked first.
+    pub fn next_page(&mut self) -> Result<Option<Range>, CopcReadError> {
+        let Some(r) = self.pending.pop() else {
+            return Ok(None);
+        };
+        let source = &self.source;
         if r.size > MAX_PAGE_BYTES {
             return Err(fail(
                 source,
@@ -406,19 +424,24 @@ pub fn walk_hierarchy(
                 ),
             ));
         }
-        if !seen.insert(r.offset) {
+        if !self.seen.insert(r.offset) {
             return Err(fail(
                 source,
                 format!("the hierarchy page at byte {} is named twice", r.offset),
             ));
         }
-        if seen.len() > MAX_PAGES {
+        if self.seen.len() > MAX_PAGES {
             return Err(fail(
                 source,
                 format!("more than {MAX_PAGES} hierarchy pages"),
             ));
         }
-        let bytes = read(r).map_err(|e| fail(source, e))?;
+        Ok(Some(r))
+    }
+
+    /// The bytes of page `r` (as [`HierarchyWalk::next_page`] gave it).
+    pub fn add_page(&mut self, r: Range, bytes: &[u8]) -> Result<(), CopcReadError> {
+        let source = &self.source;
         if bytes.len() as u64 != r.size {
             return Err(fail(
                 source,
@@ -430,26 +453,46 @@ pub fn walk_hierarchy(
                 ),
             ));
         }
-        for e in parse_page(&bytes, file_len, source)? {
-            entries += 1;
-            if entries > MAX_ENTRIES {
+        for e in parse_page(bytes, self.file_len, source)? {
+            self.entries += 1;
+            if self.entries > MAX_ENTRIES {
                 return Err(fail(
                     source,
                     format!("more than {MAX_ENTRIES} hierarchy entries"),
                 ));
             }
             if e.is_child_page() {
-                pending.push(Range {
+                self.pending.push(Range {
                     offset: e.offset,
                     size: e.byte_size as u64,
                 });
             } else if e.has_point_data() {
-                nodes.push(e);
+                self.nodes.push(e);
             }
         }
+        Ok(())
     }
-    nodes.sort_by_key(|e| e.key);
-    Ok(nodes)
+
+    /// Every node with points, by key.
+    pub fn finish(mut self) -> Vec<Entry> {
+        self.nodes.sort_by_key(|e| e.key);
+        self.nodes
+    }
+}
+
+/// The whole hierarchy through `read` (offset, size → bytes), blocking: for the CLI and the tests.
+pub fn walk_hierarchy(
+    head: &CopcHead,
+    file_len: Option<u64>,
+    source: &str,
+    read: &mut dyn FnMut(Range) -> Result<Vec<u8>, String>,
+) -> Result<Vec<Entry>, CopcReadError> {
+    let mut walk = HierarchyWalk::new(head, file_len, source);
+    while let Some(r) = walk.next_page()? {
+        let bytes = read(r).map_err(|e| fail(source, e))?;
+        walk.add_page(r, &bytes)?;
+    }
+    Ok(walk.finish())
 }
 
 /// One node's points: positions relative to an origin (in f32: a map's extent in metres keeps them to
