@@ -64,6 +64,8 @@ export async function serve() {
       'latin1',
     ),
     '/data/not.ply': Buffer.from('<html><body>this is not a point cloud</body></html>'),
+    // A peer's COPC: PDAL's Autzen sample with its hierarchy over two pages (fuzz/seeds/copc_file/SOURCES.md).
+    '/data/peer.copc.laz': readFileSync(join(ROOT, 'fuzz', 'seeds', 'copc_file', 'simple_with_page.copc.laz')),
     // A header whose error names the offending line: markup in a file must reach the page as text.
     '/data/script-header.ply': Buffer.from(`ply\nformat ascii 1.0\nelement ${XSS_IMG}\nend_header\n`),
   };
@@ -345,6 +347,26 @@ export function viewerSuite(driver) {
       await redraw(page, () => driver.evaluate(page, () => document.querySelector('#layers input[type=checkbox]').click()));
       const blank = await shot(page);
       assert.ok((await pixelDiff(page, blank, drawn)) > 0.01, 'the COPC layer draws nothing');
+      noErrors(log);
+      await page.close();
+    });
+
+    test("a peer's COPC map (PDAL's, two hierarchy pages, no summary of ours) opens whole, in colour", async () => {
+      const peer = readFileSync(join(ROOT, 'fuzz', 'seeds', 'copc_file', 'simple_with_page.copc.laz'));
+      const total = Number(peer.readBigUInt64LE(247));
+      const { page, log } = await open(`/?url=${enc(`${server.base}/data/peer.copc.laz`)}`);
+      await layersLoaded(page, 1);
+      const li = await driver.evaluate(page, () => {
+        const l = document.querySelector('#layers li');
+        return { ...l.dataset, text: l.textContent };
+      });
+      assert.equal(Number(li.total), total, li.text);
+      assert.equal(Number(li.points), total, li.text);
+      assert.equal(li.summaryKept, undefined, li.text);
+      await redraw(page, () => setValue(page, '#colour', 'rgb'));
+      const rgb = await shot(page);
+      await redraw(page, () => driver.evaluate(page, () => document.querySelector('#layers input[type=checkbox]').click()));
+      assert.ok((await pixelDiff(page, await shot(page), rgb)) > 0.002, "the peer's map draws nothing");
       noErrors(log);
       await page.close();
     });
