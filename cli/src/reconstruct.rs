@@ -631,9 +631,10 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
     // The filtered map also as LAZ 1.4 for survey and GIS tools (uncertainty and submap as extra bytes).
     let merged_laz = out.join("merged.laz");
     silvr_core::lasfile::write_las(&merged_laz, &merged)?;
-    // Every merged point with its uncertainty as COPC, for the studio and streaming viewers to open by
-    // link and filter themselves (its header's summary states the default filter over the whole map).
-    let merged_copc = out.join("merged.copc.laz");
+    // Every merged point with its uncertainty as COPC (merged_unfiltered.ply's points), for the studio and
+    // streaming viewers to open by link and filter themselves (its header's summary states the default
+    // filter over the whole map); `silvr serve`'s link opens it in place of that PLY.
+    let merged_copc = out.join("merged_unfiltered.copc.laz");
     if !merged_all.is_empty() {
         use silvr_core::copc::write::{write_copc, CopcInput, CopcOptions};
         let w = write_copc(

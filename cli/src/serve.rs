@@ -140,7 +140,7 @@ pub fn run(cmd: ServeCmd) -> Result<()> {
     drop(out);
     if plys.is_empty() {
         eprintln!(
-            "note: no .ply file within {PLY_SEARCH_DEPTH} levels of {}",
+            "note: no .ply or .copc.laz file within {PLY_SEARCH_DEPTH} levels of {}",
             data.display()
         );
     }
@@ -398,8 +398,16 @@ fn data_url(host: &str, port: u16, rel: &Path) -> String {
     format!("http://{host}:{port}/data/{}", segments.join("/"))
 }
 
-/// `.ply` files under `root` (at most [`PLY_SEARCH_DEPTH`] path components deep), relative to it, sorted
-/// by path, the first [`MAX_LINKED_PLYS`]. Only files the server would serve: UTF-8 names, inside the root.
+/// Whether the studio opens `name` as a map: a PLY, or a COPC file (read by byte ranges).
+fn is_map(name: &str) -> bool {
+    let lower = name.to_ascii_lowercase();
+    lower.ends_with(".ply") || lower.ends_with(".copc.laz")
+}
+
+/// `.ply` and `.copc.laz` maps under `root` (at most [`PLY_SEARCH_DEPTH`] path components deep), relative
+/// to it, sorted by path, the first [`MAX_LINKED_PLYS`]; an `X.ply` beside an `X.copc.laz` is left out (the
+/// same map, which the studio streams from the COPC). Only files the server would serve: UTF-8 names,
+/// inside the root.
 fn find_plys(root: &Path) -> Vec<PathBuf> {
     fn walk(root: &Path, rel: &Path, depth: usize, found: &mut Vec<PathBuf>) {
         let Ok(entries) = std::fs::read_dir(root.join(rel)) else {
@@ -426,7 +434,7 @@ fn find_plys(root: &Path) -> Vec<PathBuf> {
                 if depth < PLY_SEARCH_DEPTH && !dataset {
                     walk(root, &rel, depth + 1, found);
                 }
-            } else if name.to_ascii_lowercase().ends_with(".ply") {
+            } else if is_map(name) {
                 let inside = root
                     .join(&rel)
                     .canonicalize()
@@ -439,6 +447,22 @@ fn find_plys(root: &Path) -> Vec<PathBuf> {
     }
     let mut found = Vec::new();
     walk(root, Path::new(""), 1, &mut found);
+    let copcs: std::collections::HashSet<PathBuf> = found
+        .iter()
+        .filter(|p| {
+            p.to_string_lossy()
+                .to_ascii_lowercase()
+                .ends_with(".copc.laz")
+        })
+        .cloned()
+        .collect();
+    found.retain(|p| {
+        let s = p.to_string_lossy();
+        let Some(stem) = s.strip_suffix(".ply").or_else(|| s.strip_suffix(".PLY")) else {
+            return true;
+        };
+        !copcs.contains(&PathBuf::from(format!("{stem}.copc.laz")))
+    });
     // Shallow files first (a folder's own reconstructions before its sub-folders'), then by path.
     found.sort_by(|a, b| (a.components().count(), a).cmp(&(b.components().count(), b)));
     found.truncate(MAX_LINKED_PLYS);
@@ -1029,6 +1053,31 @@ mod tests {
         assert_eq!(
             decode_bytes(&encode("a b/é%")).unwrap(),
             "a b/é%".as_bytes()
+        );
+    }
+
+    /// The link opens PLY and COPC maps; a COPC beside its PLY (same name) stands for it.
+    #[test]
+    fn the_link_prefers_a_copc_to_its_ply() {
+        let dir = std::env::temp_dir().join(format!("silvr-serve-maps-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        for f in [
+            "a/points.ply",
+            "a/points.copc.laz",
+            "a/other.ply",
+            "a/merged.laz",
+            "b/map.COPC.LAZ",
+        ] {
+            let p = dir.join(f);
+            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+            std::fs::write(p, b"x").unwrap();
+        }
+        let root = dir.canonicalize().unwrap();
+        let found = find_plys(&root);
+        let _ = std::fs::remove_dir_all(&dir);
+        assert_eq!(
+            found,
+            ["a/other.ply", "a/points.copc.laz", "b/map.COPC.LAZ"].map(PathBuf::from)
         );
     }
 

@@ -625,7 +625,11 @@ export function viewerSuite(driver) {
           await driver.waitFor(page, () => document.body.dataset.state !== 'loading', null, STARTUP_TIMEOUT_MS);
           await layersLoaded(page, 3);
           const names = await driver.evaluate(page, () => [...document.querySelectorAll('#layers li')].map((l) => l.textContent));
-          assert.ok(names.some((n) => n.startsWith('points.ply')), names.join('\n'));
+          // points.copc.laz stands for points.ply (the same map): opened through serve's byte ranges, whole.
+          assert.ok(names.some((n) => n.startsWith('points.copc.laz')), names.join('\n'));
+          assert.ok(!names.some((n) => n.startsWith('points.ply')), names.join('\n'));
+          const copc = await driver.evaluate(page, () => ({ ...[...document.querySelectorAll('#layers li')].find((l) => l.textContent.startsWith('points.copc.laz')).dataset }));
+          assert.equal(copc.points, copc.total);
           noErrors(log);
           await page.close();
         } finally {

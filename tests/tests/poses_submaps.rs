@@ -350,7 +350,7 @@ fn reconstruct_trains_each_submap_merges_and_resumes() {
     );
     // Every merged point (unfiltered) as COPC for the studio (issue 36), with the summary of the default
     // filter over the whole map: the count the native filter keeps of the same points.
-    let copc = out.join("merged.copc.laz");
+    let copc = out.join("merged_unfiltered.copc.laz");
     let all = silvr_core::pointcloud::read_ply(&out.join("merged_unfiltered.ply")).unwrap();
     let (points, summary) = silvr_core::copc::write::read_summary(&copc).unwrap();
     assert_eq!(points, all.len() as u64);
