@@ -428,7 +428,7 @@ pub struct ExportCmd {
     /// extra-bytes dimensions) or `copc` (the same as COPC, the octree-ordered LAZ streaming viewers read by
     /// byte ranges, with a summary of the uncertainty filter over the whole cloud; streamed, bounded memory).
     pub format: String,
-    /// Dataset folder (holding transforms.json); for `las` and `copc`, the PLY.
+    /// Dataset folder (holding transforms.json); for `las`, the PLY; for `copc`, a PLY or LAS/LAZ.
     pub dataset: PathBuf,
     /// Output folder (for `las`: the .laz or .las file; for `copc`: the .copc.laz file).
     #[arg(long)]
