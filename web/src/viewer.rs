@@ -18,7 +18,7 @@ use serde::Serialize;
 use silvr_worker::studio::{
     scalar_range, union_box, FilterCounts, LayerInfo, LAYER_COLOURS, MAX_LAYERS,
 };
-use silvr_worker::view::{is_fetchable, Camera, Colour, Nav, ViewState, MAX_SOURCES};
+use silvr_worker::view::{is_fetchable, Camera, Colour, Nav, ViewState, BUDGET_RANGE, MAX_SOURCES};
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 use web_sys::{
@@ -375,6 +375,8 @@ pub fn on_frame(n: u32, ms: f64, points: u64, seq: u32) {
     if let Some(c) = by_id(&doc, "view") {
         c.set_attribute("data-frames", &n.to_string()).ok();
         c.set_attribute("data-drawn-seq", &seq.to_string()).ok();
+        c.set_attribute("data-drawn-points", &points.to_string())
+            .ok();
     }
     if let Some(el) = by_id(&doc, "frame") {
         el.set_text_content(Some(&format!(
@@ -635,6 +637,20 @@ fn show_controls(v: &Shared) {
             Nav::Fly => "fly",
         });
     }
+    if let Some(sel) = select("budget") {
+        let value = s.budget.map(|n| n.to_string()).unwrap_or_default();
+        sel.set_value(&value);
+        // A link's budget that is not one of the choices becomes one.
+        if sel.value() != value {
+            if let Ok(o) = web_sys::HtmlOptionElement::new_with_text_and_value(
+                &format!("{} (link)", group_digits(s.budget.unwrap_or(0))),
+                &value,
+            ) {
+                sel.add_with_html_option_element(&o).ok();
+                sel.set_value(&value);
+            }
+        }
+    }
     drop(b);
     show_counts(v);
     show_legend(v);
@@ -822,6 +838,9 @@ fn show_layers(v: &Shared) {
         if let Some(lod) = &l.lod {
             li.set_attribute("data-budget", &lod.budget.to_string())
                 .ok();
+            li.set_attribute("data-nodes", &lod.nodes.to_string()).ok();
+            li.set_attribute("data-pending", &lod.pending.to_string())
+                .ok();
             if let Some(k) = lod.summary_kept {
                 li.set_attribute("data-summary-kept", &k.to_string()).ok();
             }
@@ -876,8 +895,15 @@ fn show_layers(v: &Shared) {
                 ),
                 None => String::new(),
             };
+            let mut state = String::new();
+            if lod.pending > 0 {
+                state += &format!(", refining: {} more to load", lod.pending);
+            }
+            if lod.failed > 0 {
+                state += &format!(", {} unreadable", lod.failed);
+            }
             format!(
-                " of {} loaded (level of detail: {} of {} octree nodes, budget {}){whole}",
+                " of {} loaded (level of detail: {} of {} octree nodes{state}, budget {}){whole}",
                 group_digits(l.total),
                 lod.nodes,
                 lod.nodes_total,
@@ -947,6 +973,12 @@ fn wire_controls(v: &Shared) {
         }
     });
     on_change("background", |s, x| s.dark = x != "light");
+    on_change("budget", |s, x| {
+        s.budget = x
+            .parse::<u64>()
+            .ok()
+            .map(|n| n.clamp(BUDGET_RANGE.0, BUDGET_RANGE.1))
+    });
     on_change("nav", |s, x| {
         s.nav = if x == "fly" { Nav::Fly } else { Nav::Orbit }
     });

@@ -34,6 +34,9 @@ pub const TOKEN_PARAM: &str = "token";
 pub const TOKEN_HEADER: &str = "X-Silvr-Token";
 /// Point size range (pixels).
 pub const POINT_SIZE: (f32, f32) = (1.0, 32.0);
+/// The point budget a link or the page may set for a COPC map (points loaded at once): from a glance at a
+/// map to what a large hardware GPU draws.
+pub const BUDGET_RANGE: (u64, u64) = (10_000, 50_000_000);
 
 /// The orbit camera: a target, a direction to the eye, a distance and a field of view.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -173,6 +176,8 @@ pub struct ViewState {
     /// Dark (true) or light background.
     pub dark: bool,
     pub nav: Nav,
+    /// Points a COPC map loads at once; `None`: the adapter's default (lower on a software one).
+    pub budget: Option<u64>,
 }
 
 impl Default for ViewState {
@@ -187,6 +192,7 @@ impl Default for ViewState {
             hidden: Vec::new(),
             dark: true,
             nav: Nav::Orbit,
+            budget: None,
         }
     }
 }
@@ -312,6 +318,9 @@ impl ViewState {
                 Nav::Fly => "fly",
             }
         ));
+        if let Some(b) = self.budget {
+            p.push(format!("budget={b}"));
+        }
         format!("#{}", p.join("&"))
     }
 
@@ -407,6 +416,10 @@ impl ViewState {
                     "fly" => s.nav = Nav::Fly,
                     _ => bad("must be orbit or fly"),
                 },
+                "budget" => match value.parse::<u64>() {
+                    Ok(b) => s.budget = Some(b.clamp(BUDGET_RANGE.0, BUDGET_RANGE.1)),
+                    _ => bad("must be a whole number of points"),
+                },
                 _ => {}
             }
         }
@@ -459,6 +472,9 @@ mod tests {
             hidden: if rng.random() { vec![0, 3] } else { vec![] },
             dark: rng.random(),
             nav: if rng.random() { Nav::Orbit } else { Nav::Fly },
+            budget: rng
+                .random::<bool>()
+                .then(|| rng.random_range(BUDGET_RANGE.0..=BUDGET_RANGE.1)),
         }
     }
 
@@ -500,10 +516,15 @@ mod tests {
             assert!(notes[0].contains("'src'"), "{notes:?}");
         }
         let (s, notes) = ViewState::from_hash(
-            "#cam=1,2,3,nan,0,1,60&t=inf&size=1e999&colour=%3Cimg%3E&hide=99&bg=x&nav=&src=%ZZ",
+            "#cam=1,2,3,nan,0,1,60&t=inf&size=1e999&colour=%3Cimg%3E&hide=99&bg=x&nav=&src=%ZZ&budget=-1",
         );
         assert_eq!(s, ViewState::default());
-        assert_eq!(notes.len(), 8, "{notes:?}");
+        assert_eq!(notes.len(), 9, "{notes:?}");
+        // A budget out of range is brought into it.
+        let (s, notes) = ViewState::from_hash("#budget=3&x=1");
+        assert_eq!((s.budget, notes.len()), (Some(BUDGET_RANGE.0), 0));
+        let (s, _) = ViewState::from_hash("#budget=18446744073709551615");
+        assert_eq!(s.budget, Some(BUDGET_RANGE.1));
         // Over-long hashes are not parsed at all.
         let (s, notes) = ViewState::from_hash(&"src=http://a/b&".repeat(5000));
         assert!(s.sources.is_empty() && notes.len() == 1);
@@ -517,7 +538,7 @@ mod tests {
     #[test]
     fn random_bytes_never_panic() {
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(9);
-        let alphabet = b"src=cam&colour=t=size=hide=,.-0123456789%eE#:/httpsjavascript";
+        let alphabet = b"src=cam&colour=t=size=hide=budget=,.-0123456789%eE#:/httpsjavascript";
         for _ in 0..20_000 {
             let n = rng.random_range(0..120);
             let s: String = (0..n)
@@ -534,6 +555,9 @@ mod tests {
             assert!((POINT_SIZE.0..=POINT_SIZE.1).contains(&v.point_size));
             if let Some(c) = v.camera {
                 assert!(c.distance > 0.0 && (5.0..=120.0).contains(&c.fov));
+            }
+            if let Some(b) = v.budget {
+                assert!((BUDGET_RANGE.0..=BUDGET_RANGE.1).contains(&b));
             }
         }
     }

@@ -45,6 +45,23 @@ struct Studio {
     seq: u32,
     frames: u32,
     last_counts: Option<crate::studio::FilterCounts>,
+    /// The COPC layers' streams, by layer index.
+    streams: std::collections::HashMap<u32, Stream>,
+    /// Bumped when the camera, the canvas, the budget or the hidden layers change: a refinement started
+    /// for an older view stops, and the view at rest starts its own.
+    view_gen: u64,
+}
+
+/// A COPC layer's stream: its octree state, where its bytes come from, and the box it was first shown in
+/// (kept, so the fitted camera does not move as nodes arrive).
+struct Stream {
+    copc: copc::CopcStream,
+    src: Rc<RangeSource>,
+    name: String,
+    source: String,
+    bounds: Option<[[f64; 3]; 4]>,
+    /// The nodes the layer shows, and the budget they were chosen within.
+    shown: (Vec<silvr_core::copc::read::VoxelKey>, u64),
 }
 
 /// The canvas surface and what drawing into it needs.
@@ -126,6 +143,8 @@ async fn startup(state: Shared) {
         seq: 0,
         frames: 0,
         last_counts: None,
+        streams: Default::default(),
+        view_gen: 0,
     }));
     let old = std::mem::replace(&mut *state.borrow_mut(), GpuState::Ready(studio.clone()));
     if let GpuState::Starting(queued) = old {
@@ -271,15 +290,23 @@ fn dispatch(studio: &Rc<RefCell<Studio>>, data: JsValue) {
         FromPage::Resize { width, height } => {
             resize(studio, width, height);
             draw(studio);
+            view_changed(studio);
         }
         FromPage::View { view, seq } => {
-            {
+            let moved = {
                 let mut s = studio.borrow_mut();
+                let moved = s.view.camera != view.camera
+                    || s.view.budget != view.budget
+                    || s.view.hidden != view.hidden;
                 s.view = view;
                 s.seq = seq;
-            }
+                moved
+            };
             draw(studio);
             report_counts(studio);
+            if moved {
+                view_changed(studio);
+            }
         }
         FromPage::OpenUrl { id, url, token } => {
             spawn_local(open_url(studio.clone(), id, url, token))
@@ -556,10 +583,7 @@ fn draw(studio: &Rc<RefCell<Studio>>) {
         * (glam::DVec3::from_array(hi) - glam::DVec3::from_array(lo))
             .length()
             .max(1e-3);
-    let camera = s.view.camera.unwrap_or_else(|| {
-        let (a, b) = s.layers.fit_bounds(&s.view).unwrap_or((lo, hi));
-        Camera::fit(a, b)
-    });
+    let Some(camera) = camera_now(&s) else { return };
     let frame = frame_for(&s.view, camera, radius, (w, h));
     let draws = s.layers.draws(&s.view);
     let points: u64 = draws.iter().map(|d| d.layer.points() as u64).sum();
@@ -578,6 +602,15 @@ fn draw(studio: &Rc<RefCell<Studio>>) {
             seq,
         })
     });
+}
+
+/// The camera the view draws with: the page's, else one that fits the visible layers.
+fn camera_now(s: &Studio) -> Option<Camera> {
+    s.view.camera.or_else(|| {
+        let (lo, hi) = s.layers.bounds(&s.view)?;
+        let (a, b) = s.layers.fit_bounds(&s.view).unwrap_or((lo, hi));
+        Some(Camera::fit(a, b))
+    })
 }
 
 fn frame_for(view: &ViewState, camera: Camera, radius: f64, (w, h): (u32, u32)) -> Frame {
@@ -665,9 +698,9 @@ fn is_copc(name: &str) -> bool {
     name.to_ascii_lowercase().ends_with(".copc.laz")
 }
 
-/// Opens a COPC map by byte ranges: its head, its hierarchy, then the octree nodes the fitted camera
-/// sees within [`copc::DEFAULT_BUDGET`] points, each decoded here as it arrives. The layer holds those;
-/// its counts over the whole map come from the file's summary, when it has one.
+/// Opens a COPC map by byte ranges: its head and hierarchy, then a coarse top of the octree for the first
+/// frame (within [`copc::FIRST_FRAME_POINTS`]), each node decoded here as it arrives; the view at rest then
+/// refines it to the budget ([`refine`]). Its counts over the whole map come from the file's summary.
 async fn open_copc(
     studio: &Rc<RefCell<Studio>>,
     id: u32,
@@ -687,43 +720,64 @@ async fn open_copc(
             "the studio holds at most {MAX_LAYERS} layers; close one first"
         ));
     }
-    match load_copc(&src, id, name, source).await {
-        Ok((cloud, lod, total)) => {
-            let view = silvr_core::viewer::ViewCloud::from_cloud(
-                &cloud,
-                silvr_core::viewer::ViewCloud::MAX_POINTS,
-            );
-            drop(cloud);
-            if view.is_empty() {
-                return fail(format!("{name}: no point has finite coordinates"));
-            }
-            let mut layer = crate::studio::Layer::new(view, name.to_string(), source, id);
-            layer.info.total = total;
-            layer.info.lod = Some(lod);
-            insert_layer(studio, id, layer);
-        }
-        Err(message) => fail(message),
-    }
-}
-
-async fn load_copc(
-    src: &RangeSource,
-    id: u32,
-    name: &str,
-    source: &str,
-) -> Result<(silvr_core::pointcloud::PointCloud, copc::LodInfo, u64), String> {
-    use silvr_core::copc::read::{
-        decode_node, head_len, parse_head, HierarchyWalk, LAS_HEADER_BYTES,
+    let mut stream = match open_stream(&src, name).await {
+        Ok(s) => s,
+        Err(message) => return fail(message),
     };
-    let progress = |stage: &str, loaded: f64, total: Option<f64>| {
+    let budget = current_budget(&studio.borrow());
+    let first = copc::choose(
+        &stream.head,
+        &stream.entries,
+        copc::FIRST_FRAME_POINTS.min(budget),
+    );
+    let want: u64 = first.iter().map(|e| e.point_count.max(0) as u64).sum();
+    let mut loaded = 0u64;
+    for e in &first {
+        match fetch_node(&src, &stream.head, e, stream.origin, name).await {
+            Ok(p) => {
+                loaded += p.positions.len() as u64;
+                stream.insert(e.key, p);
+            }
+            // Without the root there is nothing to show; a deeper node is left out, with a message.
+            Err(message) if e.key.level == 0 => return fail(message),
+            Err(message) => {
+                stream.fail(e.key);
+                post(&view_error(
+                    None,
+                    &format!("{name}: {message}; the view keeps what it has"),
+                ));
+            }
+        }
         post(&ToPage::Progress {
             id,
             source: source.to_string(),
-            stage: stage.into(),
-            loaded,
-            total,
-        })
-    };
+            stage: "decode".into(),
+            loaded: loaded as f64,
+            total: Some(want as f64),
+        });
+    }
+    studio.borrow_mut().streams.insert(
+        id,
+        Stream {
+            copc: stream,
+            src: Rc::new(src),
+            name: name.to_string(),
+            source: source.to_string(),
+            bounds: None,
+            shown: (Vec::new(), 0),
+        },
+    );
+    if let Err(message) = show_stream(studio, id, &first, 0) {
+        studio.borrow_mut().streams.remove(&id);
+        return fail(message);
+    }
+    let gen = studio.borrow().view_gen;
+    spawn_local(refine(studio.clone(), id, gen));
+}
+
+/// A COPC map's head and hierarchy (every page), read by ranges.
+async fn open_stream(src: &RangeSource, name: &str) -> Result<copc::CopcStream, String> {
+    use silvr_core::copc::read::{head_len, parse_head, HierarchyWalk, LAS_HEADER_BYTES};
     let (first, mut file_len) = src.range(0, LAS_HEADER_BYTES as u64).await?;
     let n = head_len(&first, name).map_err(|e| e.to_string())?;
     let (head_bytes, len) = src.range(0, n).await?;
@@ -735,28 +789,192 @@ async fn load_copc(
         walk.add_page(r, &bytes).map_err(|e| e.to_string())?;
     }
     let entries = walk.finish();
-    let chosen = copc::choose(&head, &entries, copc::DEFAULT_BUDGET);
-    let want: u64 = chosen.iter().map(|e| e.point_count.max(0) as u64).sum();
-    let origin = head.center();
-    let mut nodes = Vec::with_capacity(chosen.len());
-    let mut loaded = 0u64;
-    for e in &chosen {
-        let (bytes, _) = src.range(e.offset, e.byte_size as u64).await?;
-        let pts = decode_node(&head, e, &bytes, origin, name).map_err(|e| e.to_string())?;
-        loaded += pts.positions.len() as u64;
-        nodes.push(pts);
-        progress("decode", loaded as f64, Some(want as f64));
-    }
-    let cloud = copc::cloud_of(&head, origin, &nodes);
-    let filter = head.summary.as_ref().and_then(|s| s.filter.as_ref());
-    let lod = copc::LodInfo {
-        nodes: chosen.len() as u32,
-        nodes_total: entries.len() as u32,
-        budget: copc::DEFAULT_BUDGET,
-        summary_kept: filter.map(|f| f.kept),
-        summary_threshold: filter.and_then(|f| f.threshold),
+    Ok(copc::CopcStream::new(head, entries))
+}
+
+/// One octree node, fetched and decoded; the error names the node.
+async fn fetch_node(
+    src: &RangeSource,
+    head: &silvr_core::copc::read::CopcHead,
+    e: &silvr_core::copc::read::Entry,
+    origin: glam::DVec3,
+    name: &str,
+) -> Result<silvr_core::copc::read::NodePoints, String> {
+    let k = e.key;
+    let node = format!("octree node {}-{}-{}-{}", k.level, k.x, k.y, k.z);
+    let (bytes, _) = src
+        .range(e.offset, e.byte_size.max(0) as u64)
+        .await
+        .map_err(|m| format!("{node} could not be read: {m}"))?;
+    silvr_core::copc::read::decode_node(head, e, &bytes, origin, name)
+        .map_err(|m| format!("{node}: {m}"))
+}
+
+/// The point budget in force: the view's, else the adapter's default.
+fn current_budget(s: &Studio) -> u64 {
+    copc::budget(s.view.budget, s.gpu.report().software)
+}
+
+/// Makes layer `id` the decoded nodes of `chosen` (those of them decoded), `pending` nodes still to come,
+/// and drops decoded nodes past the cache bound, least recently shown first.
+fn show_stream(
+    studio: &Rc<RefCell<Studio>>,
+    id: u32,
+    chosen: &[silvr_core::copc::read::Entry],
+    pending: u32,
+) -> Result<(), String> {
+    let layer = {
+        let mut s = studio.borrow_mut();
+        let budget = current_budget(&s);
+        let Some(st) = s.streams.get_mut(&id) else {
+            return Ok(());
+        };
+        let (cloud, keys) = st.copc.show(chosen);
+        st.copc.evict(budget.saturating_mul(copc::CACHE_PER_BUDGET));
+        let view = silvr_core::viewer::ViewCloud::from_cloud(
+            &cloud,
+            silvr_core::viewer::ViewCloud::MAX_POINTS,
+        );
+        drop(cloud);
+        if view.is_empty() {
+            return Err(format!("{}: no point has finite coordinates", st.name));
+        }
+        let mut layer = crate::studio::Layer::new(view, st.name.clone(), &st.source, id);
+        let i = &mut layer.info;
+        let [min, max, fit_min, fit_max] = *st
+            .bounds
+            .get_or_insert([i.min, i.max, i.fit_min, i.fit_max]);
+        (i.min, i.max, i.fit_min, i.fit_max) = (min, max, fit_min, fit_max);
+        i.total = st.copc.head.points;
+        let filter = st
+            .copc
+            .head
+            .summary
+            .as_ref()
+            .and_then(|s| s.filter.as_ref());
+        i.lod = Some(copc::LodInfo {
+            nodes: keys.len() as u32,
+            nodes_total: st.copc.entries.len() as u32,
+            budget,
+            pending,
+            failed: st.copc.failed() as u32,
+            summary_kept: filter.map(|f| f.kept),
+            summary_threshold: filter.and_then(|f| f.threshold),
+        });
+        st.shown = (keys, budget);
+        layer
     };
-    Ok((cloud, lod, head.points))
+    insert_layer(studio, id, layer);
+    Ok(())
+}
+
+/// How long the camera must rest before the level of detail follows it (ms): an orbit sends a view a
+/// frame, and each would otherwise start fetching.
+const REST_MS: i32 = 250;
+/// While nodes arrive, the layer is redrawn with what has come at most this often (ms).
+const REFINE_SHOW_MS: f64 = 700.0;
+
+/// The view changed: once it has rested, the COPC layers refine for it.
+fn view_changed(studio: &Rc<RefCell<Studio>>) {
+    let gen = {
+        let mut s = studio.borrow_mut();
+        s.view_gen += 1;
+        if s.streams.is_empty() {
+            return;
+        }
+        s.view_gen
+    };
+    let studio = studio.clone();
+    spawn_local(async move {
+        sleep_ms(REST_MS).await;
+        let ids: Vec<u32> = studio.borrow().streams.keys().copied().collect();
+        for id in ids {
+            if studio.borrow().view_gen != gen {
+                return;
+            }
+            refine(studio.clone(), id, gen).await;
+        }
+    });
+}
+
+/// Loads the nodes the view `gen` wants of layer `id` (largest on screen first, within the budget),
+/// showing what has come every [`REFINE_SHOW_MS`]; stops when the view changes (what was fetched stays
+/// decoded for the next). A node that cannot be read is reported and left out; the view keeps the rest.
+async fn refine(studio: Rc<RefCell<Studio>>, id: u32, gen: u64) {
+    let current = |s: &Studio| s.view_gen == gen && s.streams.contains_key(&id);
+    let (plan, head, src, name, same) = {
+        let s = studio.borrow();
+        if !current(&s) || s.view.hidden.contains(&id) {
+            return;
+        }
+        let Some(camera) = camera_now(&s) else { return };
+        let st = &s.streams[&id];
+        let plan = st
+            .copc
+            .plan(&copc::lod_view(&camera, s.size), current_budget(&s));
+        let budget = current_budget(&s);
+        let same = st.shown.1 == budget
+            && st.shown.0.len() == plan.chosen.len()
+            && st
+                .shown
+                .0
+                .iter()
+                .zip(&plan.chosen)
+                .all(|(k, e)| *k == e.key);
+        (
+            plan,
+            st.copc.head.clone(),
+            st.src.clone(),
+            st.name.clone(),
+            same,
+        )
+    };
+    log::debug!(
+        "COPC layer {id}, view {gen}: {} nodes wanted, {} to load",
+        plan.chosen.len(),
+        plan.missing.len()
+    );
+    if plan.missing.is_empty() {
+        // Everything wanted is decoded: show it unless it is what is shown.
+        if !same {
+            let _ = show_stream(&studio, id, &plan.chosen, 0);
+        }
+        return;
+    }
+    let origin = head.center();
+    let mut last = js_sys::Date::now();
+    let total = plan.missing.len();
+    for (i, e) in plan.missing.iter().enumerate() {
+        if !current(&studio.borrow()) {
+            return;
+        }
+        let got = fetch_node(&src, &head, e, origin, &name).await;
+        {
+            let mut s = studio.borrow_mut();
+            let Some(st) = s.streams.get_mut(&id) else {
+                return;
+            };
+            match got {
+                Ok(p) => st.copc.insert(e.key, p),
+                Err(message) => {
+                    st.copc.fail(e.key);
+                    drop(s);
+                    post(&view_error(
+                        None,
+                        &format!("{name}: {message}; the view keeps what it has"),
+                    ));
+                }
+            }
+        }
+        let left = total - i - 1;
+        if left > 0 && js_sys::Date::now() - last > REFINE_SHOW_MS && current(&studio.borrow()) {
+            let _ = show_stream(&studio, id, &plan.chosen, left as u32);
+            last = js_sys::Date::now();
+        }
+    }
+    if current(&studio.borrow()) {
+        let _ = show_stream(&studio, id, &plan.chosen, 0);
+    }
 }
 
 fn add_layer(studio: &Rc<RefCell<Studio>>, id: u32, bytes: &[u8], name: &str, source: &str) {
