@@ -14,10 +14,11 @@ use silvr_core::pointcloud::PointCloud;
 use crate::studio::SHOWN_FIELDS;
 use crate::view::{Camera, BUDGET_RANGE};
 
-/// Points loaded by default on a software adapter: Potree's default budget, which SwiftShader and lavapipe
-/// still draw (a second or so a frame).
-pub const DEFAULT_BUDGET: u64 = 1_000_000;
-/// The default on a hardware GPU, which draws millions of points a frame.
+/// Points loaded by default on a software adapter: SwiftShader draws the quads of 400 k points in ~5 s and
+/// of 1 M (Potree's default budget) in ~12 s a frame (BENCHMARKS.md, "Streaming a COPC map"), so a quarter
+/// of a million keeps a frame to a few seconds.
+pub const DEFAULT_BUDGET: u64 = 250_000;
+/// The default on a hardware GPU, which draws millions of points a frame (4x Potree's default).
 pub const HARDWARE_BUDGET: u64 = 4_000_000;
 /// The first frame's points: a coarse top of the octree, shown quickly, then refined to the budget.
 pub const FIRST_FRAME_POINTS: u64 = 200_000;
