@@ -19,6 +19,7 @@ use crate::{
     name_adapter, run_check, BrowserAdapterInfo, FromPage, Stage, ToPage, STARTUP_POINTS,
     STARTUP_SEED,
 };
+use futures_util::StreamExt;
 use silvr_core::gpu::wgpu;
 use silvr_core::viewer::{Frame, PointRenderer, DEPTH_FORMAT};
 
@@ -732,8 +733,10 @@ async fn open_copc(
     );
     let want: u64 = first.iter().map(|e| e.point_count.max(0) as u64).sum();
     let mut loaded = 0u64;
-    for e in &first {
-        match fetch_node(&src, &stream.head, e, stream.origin, name).await {
+    let src = Rc::new(src);
+    let mut arrivals = fetch_nodes(src.clone(), first.clone());
+    while let Some((e, bytes)) = arrivals.next().await {
+        match decode(&stream.head, &e, bytes, stream.origin, name) {
             Ok(p) => {
                 loaded += p.positions.len() as u64;
                 stream.insert(e.key, p);
@@ -760,7 +763,7 @@ async fn open_copc(
         id,
         Stream {
             copc: stream,
-            src: Rc::new(src),
+            src,
             name: name.to_string(),
             source: source.to_string(),
             bounds: None,
@@ -792,20 +795,38 @@ async fn open_stream(src: &RangeSource, name: &str) -> Result<copc::CopcStream, 
     Ok(copc::CopcStream::new(head, entries))
 }
 
-/// One octree node, fetched and decoded; the error names the node.
-async fn fetch_node(
-    src: &RangeSource,
+/// Range requests a COPC layer keeps in flight: a remote server's latency overlaps the decoding of the
+/// nodes that have come (on loopback the decoding dominates either way).
+const FETCHES_IN_FLIGHT: usize = 4;
+
+/// The octree nodes' bytes, fetched [`FETCHES_IN_FLIGHT`] at a time and yielded in `entries`' order.
+/// Dropping the stream drops the requests still in flight.
+fn fetch_nodes(
+    src: Rc<RangeSource>,
+    entries: Vec<silvr_core::copc::read::Entry>,
+) -> impl futures_util::Stream<Item = (silvr_core::copc::read::Entry, Result<Vec<u8>, String>)> {
+    futures_util::stream::iter(entries)
+        .map(move |e| {
+            let src = src.clone();
+            async move {
+                let got = src.range(e.offset, e.byte_size.max(0) as u64).await;
+                (e, got.map(|(bytes, _)| bytes))
+            }
+        })
+        .buffered(FETCHES_IN_FLIGHT)
+}
+
+/// One node's points from its fetched bytes; the error names the node.
+fn decode(
     head: &silvr_core::copc::read::CopcHead,
     e: &silvr_core::copc::read::Entry,
+    bytes: Result<Vec<u8>, String>,
     origin: glam::DVec3,
     name: &str,
 ) -> Result<silvr_core::copc::read::NodePoints, String> {
     let k = e.key;
     let node = format!("octree node {}-{}-{}-{}", k.level, k.x, k.y, k.z);
-    let (bytes, _) = src
-        .range(e.offset, e.byte_size.max(0) as u64)
-        .await
-        .map_err(|m| format!("{node} could not be read: {m}"))?;
+    let bytes = bytes.map_err(|m| format!("{node} could not be read: {m}"))?;
     silvr_core::copc::read::decode_node(head, e, &bytes, origin, name)
         .map_err(|m| format!("{node}: {m}"))
 }
@@ -944,11 +965,13 @@ async fn refine(studio: Rc<RefCell<Studio>>, id: u32, gen: u64) {
     let origin = head.center();
     let mut last = js_sys::Date::now();
     let total = plan.missing.len();
-    for (i, e) in plan.missing.iter().enumerate() {
+    let mut arrivals = fetch_nodes(src, plan.missing.clone());
+    let mut i = 0;
+    while let Some((e, bytes)) = arrivals.next().await {
         if !current(&studio.borrow()) {
             return;
         }
-        let got = fetch_node(&src, &head, e, origin, &name).await;
+        let got = decode(&head, &e, bytes, origin, &name);
         {
             let mut s = studio.borrow_mut();
             let Some(st) = s.streams.get_mut(&id) else {
@@ -966,7 +989,8 @@ async fn refine(studio: Rc<RefCell<Studio>>, id: u32, gen: u64) {
                 }
             }
         }
-        let left = total - i - 1;
+        i += 1;
+        let left = total - i;
         if left > 0 && js_sys::Date::now() - last > REFINE_SHOW_MS && current(&studio.borrow()) {
             let _ = show_stream(&studio, id, &plan.chosen, left as u32);
             last = js_sys::Date::now();
