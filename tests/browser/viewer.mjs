@@ -19,6 +19,8 @@ export const ROOT = resolve(fileURLToPath(new URL('../..', import.meta.url)));
 const DIST = join(ROOT, 'dist');
 const FIXTURES = process.env.SILVR_STUDIO_FIXTURES || join(ROOT, 'target', 'studio-fixtures');
 /** The generated map at scale (scripts/browser-tests.sh): cloud20m.copc.laz and what its export printed. */
+/** A peer's COPC: PDAL's Autzen sample with its hierarchy over two pages (fuzz/seeds/copc_file/SOURCES.md). */
+const PEER_COPC = join(ROOT, 'fuzz', 'seeds', 'copc_file', 'simple_with_page.copc.laz');
 const SCALE = process.env.SILVR_STUDIO_SCALE || join(ROOT, 'target', 'studio-scale');
 /** The point budget the scale test's link sets: a software adapter's frames stay a few seconds. */
 const SCALE_BUDGET = 400_000;
@@ -75,9 +77,8 @@ export async function serve() {
       'latin1',
     ),
     '/data/not.ply': Buffer.from('<html><body>this is not a point cloud</body></html>'),
-    // A peer's COPC: PDAL's Autzen sample with its hierarchy over two pages (fuzz/seeds/copc_file/SOURCES.md).
-    '/data/peer.copc.laz': readFileSync(join(ROOT, 'fuzz', 'seeds', 'copc_file', 'simple_with_page.copc.laz')),
-    '/data/holey.copc.laz': readFileSync(join(ROOT, 'fuzz', 'seeds', 'copc_file', 'simple_with_page.copc.laz')),
+    '/data/peer.copc.laz': readFileSync(PEER_COPC),
+    '/data/holey.copc.laz': readFileSync(PEER_COPC),
     // A header whose error names the offending line: markup in a file must reach the page as text.
     '/data/script-header.ply': Buffer.from(`ply\nformat ascii 1.0\nelement ${XSS_IMG}\nend_header\n`),
   };
@@ -213,6 +214,12 @@ export function viewerSuite(driver) {
     };
     const layersLoaded = (page, n) =>
       driver.waitFor(page, (n) => document.querySelectorAll('#layers li').length >= n, n, STEP_TIMEOUT_MS);
+    /** The first layer's list entry: its data attributes and its text. */
+    const firstLayer = (page) =>
+      driver.evaluate(page, () => {
+        const l = document.querySelector('#layers li');
+        return { ...l.dataset, text: l.textContent };
+      });
     const kept = (page) =>
       driver.evaluate(page, () => {
         const k = document.querySelector('#kept');
@@ -350,10 +357,7 @@ export function viewerSuite(driver) {
       const total = Number(copc.readBigUInt64LE(247));
       const { page, log } = await open(`/?url=${enc(`${server.base}/data/points.copc.laz`)}`);
       await layersLoaded(page, 1);
-      const li = await driver.evaluate(page, () => {
-        const l = document.querySelector('#layers li');
-        return { ...l.dataset, text: l.textContent };
-      });
+      const li = await firstLayer(page);
       assert.equal(Number(li.total), total, li.text);
       assert.equal(Number(li.points), total, `loaded ${li.points} of ${total}: ${li.text}`);
       assert.ok(Number(li.points) <= Number(li.budget), li.text);
@@ -373,14 +377,11 @@ export function viewerSuite(driver) {
     });
 
     test("a peer's COPC map (PDAL's, two hierarchy pages, no summary of ours) opens whole, in colour", async () => {
-      const peer = readFileSync(join(ROOT, 'fuzz', 'seeds', 'copc_file', 'simple_with_page.copc.laz'));
+      const peer = readFileSync(PEER_COPC);
       const total = Number(peer.readBigUInt64LE(247));
       const { page, log } = await open(`/?url=${enc(`${server.base}/data/peer.copc.laz`)}`);
       await layersLoaded(page, 1);
-      const li = await driver.evaluate(page, () => {
-        const l = document.querySelector('#layers li');
-        return { ...l.dataset, text: l.textContent };
-      });
+      const li = await firstLayer(page);
       assert.equal(Number(li.total), total, li.text);
       assert.equal(Number(li.points), total, li.text);
       assert.equal(li.summaryKept, undefined, li.text);
@@ -393,14 +394,14 @@ export function viewerSuite(driver) {
     });
 
     test('a COPC node the server cannot give (404) is named in a message; the view keeps the rest', async () => {
-      const peer = readFileSync(join(ROOT, 'fuzz', 'seeds', 'copc_file', 'simple_with_page.copc.laz'));
+      const peer = readFileSync(PEER_COPC);
       const total = Number(peer.readBigUInt64LE(247));
       const { page, log } = await open(`/?url=${enc(`${server.base}/data/holey.copc.laz`)}`);
       await layersLoaded(page, 1);
       await driver.waitFor(page, () => [...document.querySelectorAll('#view-messages li')].some((l) => /keeps what it has/.test(l.textContent)), null, STEP_TIMEOUT_MS);
       const text = await driver.evaluate(page, () => [...document.querySelectorAll('#view-messages li')].map((l) => l.textContent).join('\n'));
       assert.match(text, /holey\.copc\.laz: octree node \d+-\d+-\d+-\d+ could not be read: .*404/i, text);
-      const li = await driver.evaluate(page, () => ({ ...document.querySelector('#layers li').dataset, text: document.querySelector('#layers li').textContent }));
+      const li = await firstLayer(page);
       assert.ok(Number(li.points) > 0 && Number(li.points) < total, li.text);
       assert.match(li.text, /\d+ unreadable/, li.text);
       void log;

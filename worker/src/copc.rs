@@ -17,7 +17,7 @@ use crate::view::{Camera, BUDGET_RANGE};
 /// Points loaded by default on a software adapter: SwiftShader draws the quads of 400 k points in ~5 s and
 /// of 1 M (Potree's default budget) in ~12 s a frame (BENCHMARKS.md, "Streaming a COPC map"), so a quarter
 /// of a million keeps a frame to a few seconds.
-pub const DEFAULT_BUDGET: u64 = 250_000;
+pub const SOFTWARE_BUDGET: u64 = 250_000;
 /// The default on a hardware GPU, which draws millions of points a frame (4x Potree's default).
 pub const HARDWARE_BUDGET: u64 = 4_000_000;
 /// The first frame's points: a coarse top of the octree, shown quickly, then refined to the budget.
@@ -31,7 +31,7 @@ pub const CACHE_PER_BUDGET: u64 = 2;
 pub fn budget(view: Option<u64>, software: bool) -> u64 {
     match view {
         Some(b) => b.clamp(BUDGET_RANGE.0, BUDGET_RANGE.1),
-        None if software => DEFAULT_BUDGET,
+        None if software => SOFTWARE_BUDGET,
         None => HARDWARE_BUDGET,
     }
 }
@@ -142,13 +142,7 @@ impl CopcStream {
             ..*view
         };
         let view = if whole <= budget { &all } else { view };
-        let by_key: HashMap<VoxelKey, &Entry> = self.entries.iter().map(|e| (e.key, e)).collect();
-        let chosen: Vec<Entry> = lod::select(&self.head, &self.entries, view, budget)
-            .nodes
-            .iter()
-            .filter(|k| !self.failed.contains(k))
-            .filter_map(|k| by_key.get(k).map(|e| **e))
-            .collect();
+        let chosen = select_entries(&self.head, &self.entries, view, budget, &self.failed);
         let missing = chosen
             .iter()
             .filter(|e| !self.cache.contains_key(&e.key))
@@ -227,21 +221,33 @@ impl CopcStream {
     }
 }
 
-/// The nodes the camera that frames the map sees, largest on screen first, within `budget` points.
+/// The nodes the camera that frames the map sees, largest on screen first, within `budget` points: the
+/// first frame's, before the page has a camera (a nominal 1000-pixel-high view, no culling).
 pub fn choose(head: &CopcHead, nodes: &[Entry], budget: u64) -> Vec<Entry> {
     let cam = Camera::fit(head.min.to_array(), head.max.to_array());
     let view = LodView {
-        eye: cam.eye(),
-        // A nominal 1000-pixel-high view: the choice does not wait for the canvas.
-        pixels_per_radian: 1000.0 / (2.0 * (cam.fov.to_radians() / 2.0).tan()),
         planes: [None; 6],
         min_pixels: 0.0,
+        ..lod_view(&cam, (1000, 1000))
     };
-    let chosen = lod::select(head, nodes, &view, budget);
-    chosen
+    select_entries(head, nodes, &view, budget, &HashSet::new())
+}
+
+/// [`lod::select`]'s choice as the hierarchy's entries, leaving out the `failed` ones (their subtrees are
+/// still chosen).
+fn select_entries(
+    head: &CopcHead,
+    nodes: &[Entry],
+    view: &LodView,
+    budget: u64,
+    failed: &HashSet<VoxelKey>,
+) -> Vec<Entry> {
+    let by_key: HashMap<VoxelKey, &Entry> = nodes.iter().map(|e| (e.key, e)).collect();
+    lod::select(head, nodes, view, budget)
         .nodes
         .iter()
-        .filter_map(|k| nodes.iter().find(|e| e.key == *k).copied())
+        .filter(|k| !failed.contains(k))
+        .filter_map(|k| by_key.get(k).map(|e| **e))
         .collect()
 }
 
@@ -441,7 +447,7 @@ mod tests {
 
     #[test]
     fn the_budget_is_the_views_else_the_adapters() {
-        assert_eq!(budget(None, true), DEFAULT_BUDGET);
+        assert_eq!(budget(None, true), SOFTWARE_BUDGET);
         assert_eq!(budget(None, false), HARDWARE_BUDGET);
         assert_eq!(budget(Some(5), false), BUDGET_RANGE.0);
         assert_eq!(budget(Some(300_000), true), 300_000);

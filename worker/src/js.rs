@@ -185,12 +185,7 @@ pub(crate) async fn fetch_bytes(
             response.status_text()
         ));
     }
-    let total = response
-        .headers()
-        .get("content-length")
-        .ok()
-        .flatten()
-        .and_then(|v| v.trim().parse::<f64>().ok());
+    let total = content_length(&response).map(|t| t as f64);
     if total.is_some_and(|t| t > MAX_FILE_BYTES as f64) {
         return Err(format!(
             "it is {:.0} MiB, more than the {} MiB the studio opens",
@@ -244,6 +239,16 @@ impl RangeSource {
     }
 }
 
+/// The response's declared `Content-Length`, when it states a number.
+fn content_length(response: &web_sys::Response) -> Option<u64> {
+    response
+        .headers()
+        .get("content-length")
+        .ok()
+        .flatten()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+}
+
 /// One HTTP range request; the server must answer 206 with exactly those bytes (a server that ignores
 /// ranges would send the whole map: refused, with the reason).
 async fn fetch_range(
@@ -289,12 +294,7 @@ async fn fetch_range(
         }
     }
     // A body larger than asked is not read (a hostile server).
-    let declared = response
-        .headers()
-        .get("content-length")
-        .ok()
-        .flatten()
-        .and_then(|v| v.trim().parse::<u64>().ok());
+    let declared = content_length(&response);
     if declared.is_some_and(|d| d > size) {
         return Err(format!(
             "asked for {size} bytes, the server announces {}",
