@@ -440,7 +440,17 @@ mod tests {
         assert!(again.chosen.iter().all(|e| e.key != bad));
         assert_eq!(again.chosen.len(), near.chosen.len() - 1);
         assert_eq!(s.failed(), 1);
-        // A budget the whole map fits loads it whole, whatever the camera sees.
+        // A budget the whole map fits loads it whole, whatever the camera sees: even looking away from it
+        // (where a smaller budget gets the root alone).
+        let away = Camera {
+            target: [900.0, 2020.0, 5.0],
+            yaw: 0.0,
+            pitch: 0.0,
+            distance: 10.0,
+            fov: 60.0,
+        };
+        let v = lod_view(&away, (800, 600));
+        assert_eq!(s.plan(&v, 39_999).chosen.len(), 1);
         let whole = s.plan(&v, 1_000_000);
         assert_eq!(whole.chosen.len(), entries.len() - 1);
     }
