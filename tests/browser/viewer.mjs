@@ -27,10 +27,11 @@ const SCALE_BUDGET = 400_000;
 /** The worker's first-frame points (worker/src/copc.rs FIRST_FRAME_POINTS). */
 const FIRST_FRAME_POINTS = 200_000;
 /**
- * Bound on the 20 M-point map's first frame, from the page's request (s): recorded 4.2 s in Chromium
- * (SwiftShader) and 1.5 s in Firefox (lavapipe) on a busy 2-core machine (2026-12-05), with room for a slower one.
+ * Bound on the 20 M-point map's first frame, from the page's request (s). Recorded on the busy 2-core VM
+ * (2026-12-05): Chromium (SwiftShader) 3.2-4.3 s alone, 8.6-9.0 s late in the full suite and in CI; Firefox
+ * (lavapipe) 1.0-1.5 s. That the first frame is the coarse one is asserted on its points, not its time.
  */
-const SCALE_FIRST_FRAME_S = 15;
+const SCALE_FIRST_FRAME_S = 30;
 const STARTUP_TIMEOUT_MS = 120_000;
 const STEP_TIMEOUT_MS = 90_000;
 /**
