@@ -1,13 +1,15 @@
-// Frame time of the studio's view for clouds of N points, in headless Chromium (SwiftShader WebGPU here;
-// a hardware GPU where the browser has one), for BENCHMARKS.md:
+// Frame time of the studio's view for clouds of N points, each point draw side by side (the compute
+// rasteriser and the instanced quads), in headless Chromium (SwiftShader WebGPU here; a hardware GPU where
+// the browser has one) or Firefox ESR (lavapipe), for BENCHMARKS.md:
 //
 //   PATH="$PWD/web/node_modules/.bin:$PATH" trunk build --release
-//   node scripts/bench-studio.mjs [POINTS ...]        (default: 1000000 10000000; FRAMES=10)
+//   node scripts/bench-studio.mjs [POINTS ...]   (default: 1000000 10000000; FRAMES=10,
+//                                                 DRAWS=compute,quads, BROWSER=chromium|firefox)
 //
 // Each cloud (a 200 m street of ground, facades and noise, with RGB and log_std_combined) is generated in
-// memory and served on 127.0.0.1; the studio opens it by `?url=`, then draws 10 frames back to back
-// (`silvr-bench` event on #view) at 1100×900 with 2-px points, and the time per frame is printed as JSON
-// with the load time (fetch + parse + upload).
+// memory and served on 127.0.0.1; the studio opens it by `?url=…#draw=D`, then draws FRAMES frames back
+// to back (`silvr-bench` event on #view) at 1100×900 with 2-px points, and the time per frame is printed
+// as JSON with the load time (fetch + parse + upload) and the draw the worker reports it used.
 
 import { createServer } from 'node:http';
 import { createRequire } from 'node:module';
@@ -17,7 +19,9 @@ import { fileURLToPath } from 'node:url';
 
 const ROOT = resolve(fileURLToPath(new URL('..', import.meta.url)));
 const DIST = join(ROOT, 'dist');
-const { chromium } = createRequire(join(ROOT, 'web', 'package.json'))('playwright-core');
+const requireWeb = createRequire(join(ROOT, 'web', 'package.json'));
+const BROWSER = process.env.BROWSER || 'chromium';
+const DRAWS = (process.env.DRAWS || 'compute,quads').split(',');
 const counts = process.argv.slice(2).map(Number).filter((n) => n > 0);
 if (!counts.length) counts.push(1_000_000, 10_000_000);
 if (!existsSync(join(DIST, 'index.html'))) throw new Error('build the studio first (trunk build --release)');
@@ -65,32 +69,73 @@ const server = createServer((req, res) => {
 });
 await new Promise((ok) => server.listen(0, '127.0.0.1', ok));
 const base = `http://127.0.0.1:${server.address().port}`;
-const browser = await chromium.launch({
-  executablePath: process.env.SILVR_CHROMIUM || '/usr/bin/chromium',
-  headless: true,
-  args: ['--no-sandbox', '--enable-unsafe-webgpu', '--enable-features=Vulkan', '--use-vulkan=swiftshader', '--use-angle=swiftshader', '--enable-unsafe-swiftshader'],
-});
+// One driver per browser: launch, a 1100×900 page, goto, wait for a predicate, evaluate.
+async function launch() {
+  if (BROWSER === 'firefox') {
+    const browser = await requireWeb('puppeteer-core').launch({
+      browser: 'firefox',
+      executablePath: process.env.SILVR_FIREFOX || '/usr/bin/firefox-esr',
+      headless: true,
+      protocolTimeout: 3_600_000,
+      extraPrefsFirefox: { 'dom.webgpu.enabled': true, 'gfx.webgpu.ignore-blocklist': true },
+    });
+    return {
+      close: () => browser.close(),
+      page: async () => {
+        const page = await browser.newPage();
+        await page.setViewport({ width: 1100, height: 900 });
+        return {
+          goto: (url) => page.goto(url, { waitUntil: 'load' }),
+          waitFor: (fn) => page.waitForFunction(fn, { timeout: 3_600_000, polling: 200 }),
+          evaluate: (fn, arg) => page.evaluate(fn, arg),
+          close: () => page.close(),
+        };
+      },
+    };
+  }
+  const browser = await requireWeb('playwright-core').chromium.launch({
+    executablePath: process.env.SILVR_CHROMIUM || '/usr/bin/chromium',
+    headless: true,
+    args: ['--no-sandbox', '--enable-unsafe-webgpu', '--enable-features=Vulkan', '--use-vulkan=swiftshader', '--use-angle=swiftshader', '--enable-unsafe-swiftshader'],
+  });
+  return {
+    close: () => browser.close(),
+    page: async () => {
+      const page = await browser.newPage({ viewport: { width: 1100, height: 900 } });
+      return {
+        goto: (url) => page.goto(url),
+        waitFor: (fn) => page.waitForFunction(fn, null, { timeout: 3_600_000 }),
+        evaluate: (fn, arg) => page.evaluate(fn, arg),
+        close: () => page.close(),
+      };
+    },
+  };
+}
+
+const browser = await launch();
 try {
   for (const n of counts) {
     data = cloud(n);
-    const page = await browser.newPage({ viewport: { width: 1100, height: 900 } });
-    const t0 = Date.now();
-    await page.goto(`${base}/?url=${encodeURIComponent(`${base}/data/cloud.ply`)}`);
-    await page.waitForFunction(() => document.querySelectorAll('#layers li').length > 0 || document.querySelector('#view-messages li'), null, { timeout: 1_800_000 });
-    const loadS = (Date.now() - t0) / 1000;
-    const err = await page.evaluate(() => document.querySelector('#view-messages')?.textContent || '');
-    if (err) throw new Error(`${n} points: ${err}`);
-    await page.waitForFunction(() => Number(document.querySelector('#view').dataset.frames || 0) >= 1, null, { timeout: 1_800_000 });
-    const frames = process.env.FRAMES || '10';
-    await page.evaluate((frames) => document.querySelector('#view').dispatchEvent(new CustomEvent('silvr-bench', { detail: Number(frames) })), frames);
-    await page.waitForFunction(() => document.querySelector('#view').dataset.benchMs, null, { timeout: 1_800_000 });
-    const r = await page.evaluate(() => {
-      const v = document.querySelector('#view').dataset;
-      return { ms_per_frame: Number(v.benchMs), points: Number(v.benchPoints), frames: Number(v.benchFrames) };
-    });
-    const adapter = await page.getAttribute('#adapter', 'data-name');
-    console.log(JSON.stringify({ points: n, adapter, load_s: loadS, ...r }));
-    await page.close();
+    for (const draw of DRAWS) {
+      const page = await browser.page();
+      const t0 = Date.now();
+      await page.goto(`${base}/?url=${encodeURIComponent(`${base}/data/cloud.ply`)}#draw=${draw}`);
+      await page.waitFor(() => document.querySelectorAll('#layers li').length > 0 || document.querySelector('#view-messages li'));
+      const loadS = (Date.now() - t0) / 1000;
+      const err = await page.evaluate(() => document.querySelector('#view-messages')?.textContent || '');
+      if (err) throw new Error(`${n} points: ${err}`);
+      await page.waitFor(() => Number(document.querySelector('#view').dataset.frames || 0) >= 1);
+      const frames = Number(process.env.FRAMES || '10');
+      await page.evaluate((f) => document.querySelector('#view').dispatchEvent(new CustomEvent('silvr-bench', { detail: f })), frames);
+      await page.waitFor(() => document.querySelector('#view').dataset.benchMs);
+      const r = await page.evaluate(() => {
+        const v = document.querySelector('#view').dataset;
+        const adapter = document.querySelector('#adapter')?.dataset.name;
+        return { adapter, draw: v.benchDraw, ms_per_frame: Number(v.benchMs), points: Number(v.benchPoints), frames: Number(v.benchFrames) };
+      });
+      console.log(JSON.stringify({ browser: BROWSER, asked: draw, load_s: loadS, ...r }));
+      await page.close();
+    }
   }
 } finally {
   await browser.close();

@@ -20,6 +20,17 @@ pub const TRAIN: &str = include_str!("../../shaders/train.wgsl");
 /// (`uncertainty::gpu`).
 pub const UNCERTAINTY: &str = include_str!("../../shaders/uncertainty.wgsl");
 
-/// The studio's point-cloud view: instanced screen-space points, colour maps, the uncertainty threshold
-/// (`viewer`).
-pub const POINTS: &str = include_str!("../../shaders/points.wgsl");
+/// The studio's point-cloud view, drawn as instanced screen-space quads (`viewer`, the reference draw):
+/// the view block, colour maps and uncertainty threshold it shares with the compute rasteriser, then its
+/// vertex and fragment shaders.
+pub const POINTS: &str = concat!(
+    include_str!("../../shaders/points_common.wgsl"),
+    include_str!("../../shaders/points.wgsl")
+);
+
+/// The studio's compute rasteriser (`viewer::compute`): the same shared block, then the depth, colour and
+/// resolve passes.
+pub const POINTS_COMPUTE: &str = concat!(
+    include_str!("../../shaders/points_common.wgsl"),
+    include_str!("../../shaders/points_compute.wgsl")
+);

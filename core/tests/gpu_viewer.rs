@@ -1,7 +1,9 @@
-//! The studio's point view (`shaders/points.wgsl`, through wgpu — lavapipe where there is no GPU) against
-//! its CPU reference: random points rendered into a texture land on the pixel `viewer::project` predicts,
-//! with the colour of their mode (RGB, Turbo of a scalar, solid), the nearest point wins, and the
-//! uncertainty threshold hides exactly the points the native filter drops (NaN included).
+//! The studio's point view through wgpu (lavapipe where there is no GPU), both draws — the compute
+//! rasteriser (`shaders/points_compute.wgsl`) and the instanced quads (`shaders/points.wgsl`) — against the
+//! CPU reference and each other, on poisoned buffers: random points rendered into a texture land on the
+//! pixel `viewer::project` predicts, with the colour of their mode (RGB, Turbo of a scalar, solid), the
+//! nearest point wins, the uncertainty threshold hides exactly the points the native filter drops (NaN
+//! included), the compute picture is the CPU reference's and the quads' up to edge snapping.
 #![cfg(not(target_arch = "wasm32"))]
 
 use glam::DVec3;
@@ -10,8 +12,9 @@ use rand_xoshiro::Xoshiro256PlusPlus;
 use silvr_core::gpu::{wgpu, Gpu};
 use silvr_core::pointcloud::PointCloud;
 use silvr_core::uncertainty::filter::{default_threshold, keeps};
+use silvr_core::viewer::reference::{rasterise, ReferenceLayer};
 use silvr_core::viewer::{
-    map_colour, project, Colouring, Frame, LayerDraw, PointRenderer, ViewCloud, DEPTH_FORMAT,
+    map_colour, project, Colouring, Frame, LayerDraw, PointRenderer, Raster, ViewCloud, ViewTargets,
 };
 
 mod common;
@@ -21,36 +24,51 @@ const H: u32 = 120;
 const FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 const BACKGROUND: [f64; 3] = [0.0, 0.0, 0.0];
 
-/// Renders `draws` and reads the target back as RGBA8 rows.
-fn render(gpu: &Gpu, r: &PointRenderer, frame: &Frame, draws: &[LayerDraw<'_>]) -> Vec<[u8; 4]> {
-    let tex = |format, usage| {
-        gpu.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("test target"),
-            size: wgpu::Extent3d {
-                width: W,
-                height: H,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format,
-            usage,
-            view_formats: &[],
-        })
-    };
-    let target = tex(
-        FORMAT,
-        wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
-    );
-    let depth = tex(DEPTH_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT);
-    r.render(
+/// Renders `draws` with `raster` into fresh targets and reads the picture back as RGBA8 rows.
+fn render(
+    gpu: &Gpu,
+    r: &PointRenderer,
+    frame: &Frame,
+    draws: &[LayerDraw<'_>],
+    raster: Raster,
+) -> Vec<[u8; 4]> {
+    let targets = r.targets(gpu, W, H);
+    render_into(gpu, r, &targets, frame, draws, raster)
+}
+
+/// Renders `draws` with `raster` using `targets` (kept between frames, as the studio keeps them).
+fn render_into(
+    gpu: &Gpu,
+    r: &PointRenderer,
+    targets: &ViewTargets,
+    frame: &Frame,
+    draws: &[LayerDraw<'_>],
+    raster: Raster,
+) -> Vec<[u8; 4]> {
+    let target = gpu.device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("test target"),
+        size: wgpu::Extent3d {
+            width: W,
+            height: H,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: FORMAT,
+        usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+        view_formats: &[],
+    });
+    assert!(targets.computes(), "a {W}×{H} target fits the compute path");
+    let used = r.render(
         gpu,
         &target.create_view(&Default::default()),
-        &depth.create_view(&Default::default()),
+        targets,
         frame,
         draws,
+        raster,
     );
+    assert_eq!(used, raster, "the draw asked for is the draw made");
     // Rows of a texture copy are padded to 256 bytes.
     let row = (W * 4).next_multiple_of(256);
     let out = gpu.output("test readback", (row * H / 4) as usize).unwrap();
@@ -179,7 +197,7 @@ fn points_land_where_the_cpu_reference_puts_them_in_every_colour_mode() {
     let (lo, hi) = s.range().unwrap();
     // The upper third of the values as "unconstrained".
     let above = s.quantile(0.67).unwrap();
-    for colouring in [
+    for (colouring, raster) in [
         Colouring::Rgb,
         Colouring::Map {
             index: 0,
@@ -194,7 +212,10 @@ fn points_land_where_the_cpu_reference_puts_them_in_every_colour_mode() {
             above,
         },
         Colouring::Solid([0.2, 0.9, 0.4]),
-    ] {
+    ]
+    .into_iter()
+    .flat_map(|c| [Raster::Compute, Raster::Quads].map(|r| (c, r)))
+    {
         let px = render(
             &gpu,
             &r,
@@ -204,6 +225,7 @@ fn points_land_where_the_cpu_reference_puts_them_in_every_colour_mode() {
                 colouring,
                 filter: None,
             }],
+            raster,
         );
         for &(i, at) in &pts {
             let want = match colouring {
@@ -220,7 +242,7 @@ fn points_land_where_the_cpu_reference_puts_them_in_every_colour_mode() {
             };
             assert!(
                 close(px[at], want, 2.5 / 255.0),
-                "{colouring:?}: point {i} at pixel {at}: {:?} vs {want:?}",
+                "{raster:?} {colouring:?}: point {i} at pixel {at}: {:?} vs {want:?}",
                 px[at]
             );
         }
@@ -242,7 +264,10 @@ fn the_threshold_hides_exactly_the_points_the_native_filter_drops() {
     let s = vc.scalar("log_std_combined").unwrap();
     let t = default_threshold(&s.values);
     // Lower than the fence too, so some finite values are cut.
-    for threshold in [t, s.quantile(0.5).unwrap()] {
+    for (threshold, raster) in [t, s.quantile(0.5).unwrap()]
+        .into_iter()
+        .flat_map(|t| [Raster::Compute, Raster::Quads].map(|r| (t, r)))
+    {
         let px = render(
             &gpu,
             &r,
@@ -252,6 +277,7 @@ fn the_threshold_hides_exactly_the_points_the_native_filter_drops() {
                 colouring: Colouring::Solid([1.0, 1.0, 1.0]),
                 filter: Some((0, threshold)),
             }],
+            raster,
         );
         let (mut shown, mut hidden) = (0, 0);
         for &(i, at) in &pts {
@@ -259,7 +285,7 @@ fn the_threshold_hides_exactly_the_points_the_native_filter_drops() {
             assert_eq!(
                 lit,
                 keeps(s.values[i], threshold),
-                "point {i} value {} threshold {threshold}",
+                "{raster:?}: point {i} value {} threshold {threshold}",
                 s.values[i]
             );
             if lit {
@@ -294,30 +320,39 @@ fn the_nearest_point_wins_and_size_grows_the_footprint() {
     c.push_colored(base + DVec3::new(0.0, 0.0, 1.0), [0, 0, 255]);
     let vc = ViewCloud::from_cloud(&c, ViewCloud::MAX_POINTS);
     let layer = r.upload(&gpu, &vc).unwrap();
-    let px = render(
-        &gpu,
-        &r,
-        &f,
-        &[LayerDraw {
-            layer: &layer,
-            colouring: Colouring::Rgb,
-            filter: None,
-        }],
-    );
-    let ([x, y], _) = project(&f, vc.origin, vc.positions[0]).unwrap();
-    let at = |dx: i32, dy: i32| px[((y as i32 + dy) as u32 * W + (x as i32 + dx) as u32) as usize];
-    assert_eq!(
-        &at(0, 0)[..3],
-        &[255, 0, 0],
-        "the near point must hide the far one"
-    );
-    // 5 px squares: ±1 px around the centre are covered whichever way the centre rounds, ±4 px are not.
-    assert_eq!(&at(1, -1)[..3], &[255, 0, 0]);
-    assert_eq!(&at(-1, 1)[..3], &[255, 0, 0]);
-    assert_eq!(&at(0, 4)[..3], &[0, 0, 0]);
-    assert_eq!(&at(-4, 0)[..3], &[0, 0, 0]);
-    let ([bx, by], _) = project(&f, vc.origin, vc.positions[2]).unwrap();
-    assert_eq!(&px[(by as u32 * W + bx as u32) as usize][..3], &[0, 0, 255]);
+    for raster in [Raster::Compute, Raster::Quads] {
+        let px = render(
+            &gpu,
+            &r,
+            &f,
+            &[LayerDraw {
+                layer: &layer,
+                colouring: Colouring::Rgb,
+                filter: None,
+            }],
+            raster,
+        );
+        let ([x, y], _) = project(&f, vc.origin, vc.positions[0]).unwrap();
+        let at =
+            |dx: i32, dy: i32| px[((y as i32 + dy) as u32 * W + (x as i32 + dx) as u32) as usize];
+        assert_eq!(
+            &at(0, 0)[..3],
+            &[255, 0, 0],
+            "{raster:?}: the near point must hide the far one"
+        );
+        // 5 px squares: ±1 px around the centre are covered whichever way the centre rounds, ±4 px are
+        // not.
+        assert_eq!(&at(1, -1)[..3], &[255, 0, 0], "{raster:?}");
+        assert_eq!(&at(-1, 1)[..3], &[255, 0, 0], "{raster:?}");
+        assert_eq!(&at(0, 4)[..3], &[0, 0, 0], "{raster:?}");
+        assert_eq!(&at(-4, 0)[..3], &[0, 0, 0], "{raster:?}");
+        let ([bx, by], _) = project(&f, vc.origin, vc.positions[2]).unwrap();
+        assert_eq!(
+            &px[(by as u32 * W + bx as u32) as usize][..3],
+            &[0, 0, 255],
+            "{raster:?}"
+        );
+    }
 }
 
 #[test]
@@ -330,4 +365,124 @@ fn large_clouds_are_decimated_with_a_stated_stride() {
     // Positions keep sub-millimetre precision far from the origin.
     let back = vc.origin + glam::Vec3::from_array(vc.positions[1]).as_dvec3();
     assert!((back - c.positions[4]).length() < 1e-4);
+}
+
+/// A dense scene: two layers (a far-from-origin cloud coloured by a filtered scalar, and a second cloud
+/// in RGB overlapping it), so footprints overlap and the depth test decides most pixels.
+fn dense_scene() -> (ViewCloud, ViewCloud) {
+    let a = ViewCloud::from_cloud(&cloud(7, 3000), ViewCloud::MAX_POINTS);
+    let mut b = cloud(8, 1500);
+    for p in &mut b.positions {
+        p.z += 0.3;
+    }
+    (a, ViewCloud::from_cloud(&b, ViewCloud::MAX_POINTS))
+}
+
+/// Pixels of `a` and `b` that differ by more than `tol` (0-255) in a channel.
+fn differing(a: &[[u8; 4]], b: &[[u8; 4]], tol: u8) -> usize {
+    a.iter()
+        .zip(b)
+        .filter(|(p, q)| (0..3).any(|k| p[k].abs_diff(q[k]) > tol))
+        .count()
+}
+
+/// The dense scene's draws and their reference layers, for one threshold.
+fn scene_draws<'a>(
+    layers: [(&'a ViewCloud, &'a silvr_core::viewer::GpuLayer); 2],
+    threshold: f32,
+) -> (Vec<LayerDraw<'a>>, Vec<ReferenceLayer<'a>>) {
+    let s = layers[0].0.scalar("log_std_combined").unwrap();
+    let (lo, hi) = s.range().unwrap();
+    let styles = [
+        (
+            Colouring::Map {
+                index: 0,
+                lo,
+                hi,
+                above: s.quantile(0.8).unwrap(),
+            },
+            Some((0, threshold)),
+        ),
+        (Colouring::Rgb, None),
+    ];
+    let draws = layers
+        .iter()
+        .zip(styles)
+        .map(|(&(_, layer), (colouring, filter))| LayerDraw {
+            layer,
+            colouring,
+            filter,
+        })
+        .collect();
+    let refs = layers
+        .iter()
+        .zip(styles)
+        .map(|(&(cloud, _), (colouring, filter))| ReferenceLayer {
+            cloud,
+            colouring,
+            filter,
+        })
+        .collect();
+    (draws, refs)
+}
+
+#[test]
+fn the_compute_rasteriser_draws_its_cpu_reference_picture() {
+    let Some(gpu) = common::gpu() else { return };
+    let r = pollster::block_on(PointRenderer::new(&gpu, FORMAT)).unwrap();
+    let (a, b) = dense_scene();
+    let (ga, gb) = (r.upload(&gpu, &a).unwrap(), r.upload(&gpu, &b).unwrap());
+    let threshold = a.scalar("log_std_combined").unwrap().quantile(0.6).unwrap();
+    let (draws, refs) = scene_draws([(&a, &ga), (&b, &gb)], threshold);
+    // One set of targets for every frame, as the studio keeps them: each frame must clear them (they
+    // start poisoned).
+    let targets = r.targets(&gpu, W, H);
+    for (size, round) in [(1.0, false), (3.0, false), (4.0, true), (7.5, true)] {
+        let mut f = frame(size);
+        f.round = round;
+        f.background = [0.1, 0.2, 0.3];
+        let gpu_px = render_into(&gpu, &r, &targets, &f, &draws, Raster::Compute);
+        let cpu_px = rasterise(&f, &refs);
+        let lit = cpu_px.iter().filter(|p| p[..3] != [26, 51, 77]).count();
+        assert!(
+            lit > (W * H / 20) as usize,
+            "size {size}: only {lit} lit pixels"
+        );
+        // Turbo and projection in f32 on both sides: a channel may round the other way, and a point
+        // within an ulp of a footprint edge or of another's depth may land differently.
+        let off = differing(&gpu_px, &cpu_px, 1);
+        assert!(
+            off * 1000 <= lit,
+            "size {size} round {round}: {off} of {lit} lit pixels differ from the CPU reference"
+        );
+    }
+    // Nothing left over from the last frame.
+    let f = frame(1.0);
+    let empty = render_into(&gpu, &r, &targets, &f, &[], Raster::Compute);
+    assert!(empty.iter().all(|p| p[..3] == [0, 0, 0]));
+}
+
+#[test]
+fn compute_and_quads_make_the_same_picture() {
+    let Some(gpu) = common::gpu() else { return };
+    let r = pollster::block_on(PointRenderer::new(&gpu, FORMAT)).unwrap();
+    let (a, b) = dense_scene();
+    let (ga, gb) = (r.upload(&gpu, &a).unwrap(), r.upload(&gpu, &b).unwrap());
+    let threshold = a.scalar("log_std_combined").unwrap().quantile(0.6).unwrap();
+    let (draws, _) = scene_draws([(&a, &ga), (&b, &gb)], threshold);
+    for (size, round) in [(1.0, false), (3.0, false), (4.0, true), (7.5, true)] {
+        let mut f = frame(size);
+        f.round = round;
+        let compute = render(&gpu, &r, &f, &draws, Raster::Compute);
+        let quads = render(&gpu, &r, &f, &draws, Raster::Quads);
+        let lit = quads.iter().filter(|p| p[..3] != [0, 0, 0]).count();
+        let off = differing(&compute, &quads, 1);
+        eprintln!("size {size} round {round}: {off} of {lit} lit pixels differ");
+        // The hardware rasteriser snaps footprint corners to 1/256 px (8 sub-pixel bits on lavapipe) and
+        // breaks depth ties by draw order: pixels whose centre is that close to an edge may differ.
+        assert!(
+            off * 100 <= lit,
+            "size {size} round {round}: {off} of {lit} lit pixels differ between the draws"
+        );
+    }
 }

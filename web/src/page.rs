@@ -270,14 +270,22 @@ fn on_worker_message(page: &Shared, msg: ToPage) {
         ToPage::TrainError { source, message } => crate::train::on_error(&source, &message),
         ToPage::TrainSaved { step } => crate::train::on_saved(step),
         ToPage::TrainSavedRun { run } => crate::train::on_saved_run(run),
-        ToPage::Frame { n, ms, points, seq } => crate::viewer::on_frame(n, ms, points, seq),
+        ToPage::Frame {
+            n,
+            ms,
+            points,
+            seq,
+            draw,
+        } => crate::viewer::on_frame(n, ms, points, seq, draw),
         ToPage::Bench {
             frames,
             ms_per_frame,
             points,
+            draw,
             ..
         } => {
             if let Some(c) = by_id(&doc, "view") {
+                c.set_attribute("data-bench-draw", draw.name()).ok();
                 c.set_attribute("data-bench-ms", &ms_per_frame.to_string())
                     .ok();
                 c.set_attribute("data-bench-points", &points.to_string())

@@ -7,7 +7,7 @@
 //! files, keeps the layers on its device and answers with layer descriptions, filter counts and frames.
 //!
 //! Test hooks: `#view[data-view-matrix]` (the camera's view-projection, comma-separated), `#view
-//! [data-frames]`, `#kept[data-kept|data-total|data-threshold]`, `#layers li[data-index]`,
+//! [data-frames|data-draw]`, `#kept[data-kept|data-total|data-threshold]`, `#layers li[data-index]`,
 //! `#view-messages li` (one per problem, naming the source).
 
 use std::cell::RefCell;
@@ -15,6 +15,7 @@ use std::rc::Rc;
 
 use glam::DVec3;
 use serde::Serialize;
+use silvr_core::viewer::Raster;
 use silvr_worker::studio::{
     scalar_range, union_box, FilterCounts, LayerInfo, LAYER_COLOURS, MAX_LAYERS,
 };
@@ -370,9 +371,10 @@ pub fn on_filter(counts: FilterCounts) {
     show_counts(&v);
 }
 
-pub fn on_frame(n: u32, ms: f64, points: u64, seq: u32) {
+pub fn on_frame(n: u32, ms: f64, points: u64, seq: u32, draw: Raster) {
     let doc = document();
     if let Some(c) = by_id(&doc, "view") {
+        c.set_attribute("data-draw", draw.name()).ok();
         c.set_attribute("data-frames", &n.to_string()).ok();
         c.set_attribute("data-drawn-seq", &seq.to_string()).ok();
         c.set_attribute("data-drawn-points", &points.to_string())
@@ -380,8 +382,12 @@ pub fn on_frame(n: u32, ms: f64, points: u64, seq: u32) {
     }
     if let Some(el) = by_id(&doc, "frame") {
         el.set_text_content(Some(&format!(
-            "{} points drawn, last frame {ms:.1} ms on the GPU",
-            group_digits(points)
+            "{} points drawn, last frame {ms:.1} ms on the GPU ({})",
+            group_digits(points),
+            match draw {
+                Raster::Compute => "compute rasteriser",
+                Raster::Quads => "instanced quads",
+            }
         )));
     }
 }
@@ -636,6 +642,9 @@ fn show_controls(v: &Shared) {
             Nav::Orbit => "orbit",
             Nav::Fly => "fly",
         });
+    }
+    if let Some(sel) = select("draw") {
+        sel.set_value(s.draw.name());
     }
     if let Some(sel) = select("budget") {
         let value = s.budget.map(|n| n.to_string()).unwrap_or_default();
@@ -979,6 +988,7 @@ fn wire_controls(v: &Shared) {
             .ok()
             .map(|n| n.clamp(BUDGET_RANGE.0, BUDGET_RANGE.1))
     });
+    on_change("draw", |s, x| s.draw = Raster::parse(x).unwrap_or_default());
     on_change("nav", |s, x| {
         s.nav = if x == "fly" { Nav::Fly } else { Nav::Orbit }
     });

@@ -160,18 +160,21 @@ pub enum ToPage {
     },
     /// The filter's outcome for the view in force.
     Filter { counts: studio::FilterCounts },
-    /// A frame was drawn (`ms`: submit to done on the GPU queue) for the view numbered `seq`; the filter
+    /// A frame was drawn (`ms`: submit to done on the GPU queue) for the view numbered `seq` with `draw`
+    /// (the view's choice, or quads where the canvas is too large for the compute rasteriser); the filter
     /// counts of that view were sent before it.
     Frame {
         n: u32,
         ms: f64,
         points: u64,
         seq: u32,
+        draw: silvr_core::viewer::Raster,
     },
-    /// `frames` frames drawn back to back.
+    /// `frames` frames drawn back to back with `draw`.
     Bench {
         id: u32,
         frames: u32,
+        draw: silvr_core::viewer::Raster,
         ms_per_frame: f64,
         points: u64,
     },

@@ -7,6 +7,8 @@
 //!
 //! Format (parameters in any order, `&`-separated, values percent-encoded):
 //! `#src=URL&src=URL&cam=tx,ty,tz,yaw,pitch,dist,fov&colour=log_std_combined&filter=log_std_combined&t=1.25&size=2&hide=0,2&bg=dark&nav=orbit`
+//! `&budget=N` (points a COPC map loads at once) and `&draw=quads` (the instanced-quad draw instead of the
+//! default compute rasteriser) are added when set.
 //! `cam` angles are degrees (yaw from +x towards +y, pitch up from the horizon, vertical field of view),
 //! `dist` metres from the orbit target; `t` is the threshold (log10 std, metres) — absent means the
 //! default rule (Tukey's fence), as in the native `points_filtered.ply`.
@@ -18,7 +20,7 @@
 
 use glam::{DVec3, Mat4};
 use serde::{Deserialize, Serialize};
-use silvr_core::viewer::Frame;
+use silvr_core::viewer::{Frame, Raster};
 
 /// Longest hash the parser reads (browsers cap URLs at 2 MB or less; a view needs far less).
 pub const MAX_HASH_BYTES: usize = 32 * 1024;
@@ -178,6 +180,8 @@ pub struct ViewState {
     pub nav: Nav,
     /// Points a COPC map loads at once; `None`: the adapter's default (lower on a software one).
     pub budget: Option<u64>,
+    /// The point draw: the compute rasteriser (default) or the instanced quads it is checked against.
+    pub draw: Raster,
 }
 
 impl Default for ViewState {
@@ -193,6 +197,7 @@ impl Default for ViewState {
             dark: true,
             nav: Nav::Orbit,
             budget: None,
+            draw: Raster::Compute,
         }
     }
 }
@@ -321,6 +326,9 @@ impl ViewState {
         if let Some(b) = self.budget {
             p.push(format!("budget={b}"));
         }
+        if self.draw != Raster::default() {
+            p.push(format!("draw={}", self.draw.name()));
+        }
         format!("#{}", p.join("&"))
     }
 
@@ -420,6 +428,10 @@ impl ViewState {
                     Ok(b) => s.budget = Some(b.clamp(BUDGET_RANGE.0, BUDGET_RANGE.1)),
                     _ => bad("must be a whole number of points"),
                 },
+                "draw" => match Raster::parse(&value) {
+                    Some(r) => s.draw = r,
+                    None => bad("must be compute or quads"),
+                },
                 _ => {}
             }
         }
@@ -475,6 +487,11 @@ mod tests {
             budget: rng
                 .random::<bool>()
                 .then(|| rng.random_range(BUDGET_RANGE.0..=BUDGET_RANGE.1)),
+            draw: if rng.random() {
+                Raster::Compute
+            } else {
+                Raster::Quads
+            },
         }
     }
 
@@ -516,10 +533,11 @@ mod tests {
             assert!(notes[0].contains("'src'"), "{notes:?}");
         }
         let (s, notes) = ViewState::from_hash(
-            "#cam=1,2,3,nan,0,1,60&t=inf&size=1e999&colour=%3Cimg%3E&hide=99&bg=x&nav=&src=%ZZ&budget=-1",
+            "#cam=1,2,3,nan,0,1,60&t=inf&size=1e999&colour=%3Cimg%3E&hide=99&bg=x&nav=&src=%ZZ&budget=-1&draw=gl",
         );
         assert_eq!(s, ViewState::default());
-        assert_eq!(notes.len(), 9, "{notes:?}");
+        assert_eq!(notes.len(), 10, "{notes:?}");
+        assert!(notes.iter().any(|n| n.contains("'draw'")), "{notes:?}");
         // A budget out of range is brought into it.
         let (s, notes) = ViewState::from_hash("#budget=3&x=1");
         assert_eq!((s.budget, notes.len()), (Some(BUDGET_RANGE.0), 0));
@@ -538,7 +556,8 @@ mod tests {
     #[test]
     fn random_bytes_never_panic() {
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(9);
-        let alphabet = b"src=cam&colour=t=size=hide=budget=,.-0123456789%eE#:/httpsjavascript";
+        let alphabet =
+            b"src=cam&colour=t=size=hide=budget=draw=quads,.-0123456789%eE#:/httpsjavascript";
         for _ in 0..20_000 {
             let n = rng.random_range(0..120);
             let s: String = (0..n)

@@ -21,7 +21,7 @@ use crate::{
 };
 use futures_util::StreamExt;
 use silvr_core::gpu::wgpu;
-use silvr_core::viewer::{Frame, PointRenderer, DEPTH_FORMAT};
+use silvr_core::viewer::{Frame, PointRenderer, ViewTargets};
 
 /// The device, once startup has settled. Messages that arrive before are queued as they came.
 enum GpuState {
@@ -70,7 +70,8 @@ struct Target {
     surface: wgpu::Surface<'static>,
     config: wgpu::SurfaceConfiguration,
     renderer: PointRenderer,
-    depth: wgpu::TextureView,
+    /// The quad draw's depth and the compute rasteriser's per-pixel words, the canvas's size.
+    targets: ViewTargets,
 }
 
 type Shared = Rc<RefCell<GpuState>>;
@@ -481,35 +482,16 @@ async fn configure_view(studio: &Rc<RefCell<Studio>>, surface: wgpu::Surface<'st
         config.alpha_mode = wgpu::CompositeAlphaMode::Opaque;
     }
     surface.configure(&gpu.device, &config);
-    let depth = depth_view(&gpu, w, h);
+    let targets = renderer.targets(&gpu, w, h);
     studio.borrow_mut().target = Some(Target {
         surface,
         config,
         renderer,
-        depth,
+        targets,
     });
     // Layers opened before the canvas came (or lost with the last device) get their buffers now.
     upload_pending(studio);
     draw(studio);
-}
-
-fn depth_view(gpu: &Gpu, w: u32, h: u32) -> wgpu::TextureView {
-    gpu.device
-        .create_texture(&wgpu::TextureDescriptor {
-            label: Some("view depth"),
-            size: wgpu::Extent3d {
-                width: w.max(1),
-                height: h.max(1),
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: DEPTH_FORMAT,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-            view_formats: &[],
-        })
-        .create_view(&Default::default())
 }
 
 fn resize(studio: &Rc<RefCell<Studio>>, width: u32, height: u32) {
@@ -523,7 +505,7 @@ fn resize(studio: &Rc<RefCell<Studio>>, width: u32, height: u32) {
             t.config.width = w;
             t.config.height = h;
             t.surface.configure(&gpu.device, &t.config);
-            t.depth = depth_view(&gpu, w, h);
+            t.targets = t.renderer.targets(&gpu, w, h);
         }
     }
 }
@@ -576,7 +558,8 @@ fn draw(studio: &Rc<RefCell<Studio>>) {
         // Nothing open: clear to the background.
         let frame = frame_for(&s.view, Camera::fit([0.0; 3], [1.0; 3]), 1.0, (w, h));
         let view = texture.texture.create_view(&Default::default());
-        t.renderer.render(&s.gpu, &view, &t.depth, &frame, &[]);
+        t.renderer
+            .render(&s.gpu, &view, &t.targets, &frame, &[], s.view.draw);
         s.gpu.queue.present(texture);
         return;
     };
@@ -590,7 +573,9 @@ fn draw(studio: &Rc<RefCell<Studio>>) {
     let points: u64 = draws.iter().map(|d| d.layer.points() as u64).sum();
     let view = texture.texture.create_view(&Default::default());
     let start = js_sys::Date::now();
-    t.renderer.render(&s.gpu, &view, &t.depth, &frame, &draws);
+    let used = t
+        .renderer
+        .render(&s.gpu, &view, &t.targets, &frame, &draws, s.view.draw);
     drop(draws);
     s.gpu.queue.present(texture);
     s.frames += 1;
@@ -601,6 +586,7 @@ fn draw(studio: &Rc<RefCell<Studio>>) {
             ms: js_sys::Date::now() - start,
             points,
             seq,
+            draw: used,
         })
     });
 }
@@ -1074,16 +1060,16 @@ async fn bench(studio: Rc<RefCell<Studio>>, id: u32, frames: u32) {
         });
         let _ = rx.await;
     }
-    let points = studio
-        .borrow()
-        .layers
-        .layers
-        .iter()
-        .map(|l| l.info.points)
-        .sum();
+    let s = studio.borrow();
+    let points = s.layers.layers.iter().map(|l| l.info.points).sum();
+    let draw = match &s.target {
+        Some(t) => t.targets.draw_for(s.view.draw),
+        None => s.view.draw,
+    };
     post(&ToPage::Bench {
         id,
         frames,
+        draw,
         ms_per_frame: (js_sys::Date::now() - start) / frames as f64,
         points,
     });

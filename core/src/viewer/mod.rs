@@ -1,10 +1,14 @@
-//! The studio's point-cloud view: reconstructions (one layer per file or submap) in GPU buffers and a
-//! render pipeline that draws them as screen-space squares or discs (`shaders/points.wgsl`), coloured by
-//! RGB, by a colour-mapped scalar (each `log_std_*`, `error_m`) or by a solid layer colour, with the
-//! uncertainty threshold applied in the vertex shader.
+//! The studio's point-cloud view: reconstructions (one layer per file or submap) in GPU buffers, drawn as
+//! screen-space squares or discs coloured by RGB, by a colour-mapped scalar (each `log_std_*`, `error_m`)
+//! or by a solid layer colour, with the uncertainty threshold applied on the GPU. Two draws, one picture:
+//! - [`compute`] (the default, [`Raster::Compute`]): a compute rasteriser, one invocation per point and an
+//!   atomic depth test in storage buffers (`shaders/points_compute.wgsl`);
+//! - instanced quads through the hardware rasteriser ([`Raster::Quads`], `shaders/points.wgsl`): the
+//!   reference draw, and the fallback where a target is too large for the compute path's buffers.
 //!
-//! Why here and not in the worker: the same device as the engine draws the view, and a native test renders
-//! through lavapipe and compares pixels with the CPU reference below ([`project`], [`turbo`]).
+//! Why here and not in the worker: the same device as the engine draws the view, and native tests render
+//! through lavapipe and compare pixels with the CPU reference ([`reference::rasterise`], [`project`],
+//! [`turbo`]) and the two draws with each other.
 //!
 //! Buffers are split into chunks that fit the adapter's `max_buffer_size`, never one giant buffer; clouds
 //! above [`ViewCloud::MAX_POINTS`] are decimated with a stated stride. Positions are stored relative to
@@ -16,6 +20,9 @@ use glam::{DMat4, DVec3, DVec4, Mat4, Vec3};
 use crate::gpu::{Gpu, GpuError};
 use crate::pointcloud::PointCloud;
 use crate::shaders;
+
+pub mod compute;
+pub mod reference;
 
 /// The scalar properties the studio colours and filters by, in the order it offers them.
 pub const UNCERTAINTY_FIELDS: [&str; 3] = ["log_std_combined", "log_std_colour", "log_std_depth"];
@@ -336,6 +343,35 @@ pub struct LayerDraw<'a> {
     pub filter: Option<(usize, f32)>,
 }
 
+/// Which draw puts the points on screen.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Raster {
+    /// The compute rasteriser ([`compute`]): one invocation per point, an atomic depth test in storage
+    /// buffers. The studio's default: on SwiftShader and lavapipe it is many times faster than triangles.
+    #[default]
+    Compute,
+    /// Instanced screen-space quads through the hardware rasteriser (`points.wgsl`): the reference draw.
+    Quads,
+}
+
+impl Raster {
+    pub fn name(self) -> &'static str {
+        match self {
+            Raster::Compute => "compute",
+            Raster::Quads => "quads",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "compute" => Some(Raster::Compute),
+            "quads" => Some(Raster::Quads),
+            _ => None,
+        }
+    }
+}
+
 struct Chunk {
     points: u32,
     positions: wgpu::Buffer,
@@ -343,7 +379,15 @@ struct Chunk {
     scalars: Vec<wgpu::Buffer>,
 }
 
-/// A cloud on the device, in chunks that fit the adapter's buffer limits.
+impl Chunk {
+    /// The buffer of scalar `i`, or (when the layer lacks it, and mode and filter are then off so it is
+    /// never read) any buffer of 4 bytes per point.
+    fn scalar(&self, i: Option<usize>) -> &wgpu::Buffer {
+        i.and_then(|i| self.scalars.get(i)).unwrap_or(&self.colours)
+    }
+}
+
+/// A cloud on the device, in chunks that fit the adapter's buffer and storage-binding limits.
 pub struct GpuLayer {
     chunks: Vec<Chunk>,
     origin: DVec3,
@@ -370,25 +414,57 @@ impl GpuLayer {
             })
             .sum()
     }
+
+    fn has_scalar(&self, i: usize) -> bool {
+        self.chunks.first().is_none_or(|c| i < c.scalars.len())
+    }
 }
 
-/// Size of the per-draw uniform block (`View` in `points.wgsl`), padded to WebGPU's 256-byte
+/// Size of the per-draw uniform block (`View` in `points_common.wgsl`), padded to WebGPU's 256-byte
 /// `minUniformBufferOffsetAlignment`.
 const UNIFORM_STRIDE: u64 = 256;
 
-/// The render pipeline of the point view, for one target format.
+/// The point view's pipelines for one target format: the instanced-quad draw and the compute rasteriser.
 pub struct PointRenderer {
     pipeline: wgpu::RenderPipeline,
     layout: wgpu::BindGroupLayout,
+    compute: compute::ComputeRaster,
     pub format: wgpu::TextureFormat,
 }
 
-/// Depth format of the view.
+/// Depth format of the quad draw.
 pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 
+/// What a frame is drawn with besides the colour target, sized to it: the quad draw's depth texture and
+/// the compute rasteriser's per-pixel words (absent where a target of this size exceeds the adapter's
+/// storage-binding limit: then the quads draw).
+pub struct ViewTargets {
+    pub width: u32,
+    pub height: u32,
+    depth: wgpu::TextureView,
+    words: Option<compute::Words>,
+}
+
+impl ViewTargets {
+    /// Whether the compute rasteriser can draw into targets of this size.
+    pub fn computes(&self) -> bool {
+        self.words.is_some()
+    }
+
+    /// The draw a frame asking for `wanted` gets: quads where these targets cannot take the compute one.
+    pub fn draw_for(&self, wanted: Raster) -> Raster {
+        if self.computes() {
+            wanted
+        } else {
+            Raster::Quads
+        }
+    }
+}
+
 impl PointRenderer {
-    /// Compiles `points.wgsl` for `format` (a non-sRGB format: colours are written as they are encoded,
-    /// the way a browser canvas shows them). A WGSL or pipeline error comes back as [`GpuError::Kernel`].
+    /// Compiles `points.wgsl` and `points_compute.wgsl` for `format` (a non-sRGB format: colours are
+    /// written as they are encoded, the way a browser canvas shows them). A WGSL or pipeline error comes
+    /// back as [`GpuError::Kernel`].
     pub async fn new(gpu: &Gpu, format: wgpu::TextureFormat) -> Result<Self, GpuError> {
         let device = &gpu.device;
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -398,16 +474,7 @@ impl PointRenderer {
         });
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("points view"),
-            entries: &[wgpu::BindGroupLayoutEntry {
-                binding: 0,
-                visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
-                ty: wgpu::BindingType::Buffer {
-                    ty: wgpu::BufferBindingType::Uniform,
-                    has_dynamic_offset: true,
-                    min_binding_size: None,
-                },
-                count: None,
-            }],
+            entries: &[view_entry(wgpu::ShaderStages::VERTEX_FRAGMENT)],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("points"),
@@ -470,6 +537,7 @@ impl PointRenderer {
             multiview_mask: None,
             cache: None,
         });
+        let compute = compute::ComputeRaster::new(gpu, format);
         if let Some(err) = scope.pop().await {
             return Err(GpuError::Kernel {
                 kernel: "points".into(),
@@ -479,25 +547,32 @@ impl PointRenderer {
         Ok(Self {
             pipeline,
             layout,
+            compute,
             format,
         })
     }
 
-    /// Uploads `cloud` in chunks of at most `max_buffer_size / 12` points.
+    /// Uploads `cloud` in chunks that each fit `max_buffer_size`, the storage-binding limit (the compute
+    /// rasteriser reads them as storage) and one dispatch.
     pub fn upload(&self, gpu: &Gpu, cloud: &ViewCloud) -> Result<GpuLayer, GpuError> {
-        let limit = gpu.device.limits().max_buffer_size;
-        let per_chunk = ((limit / 12) as usize).clamp(1, 1 << 24);
+        let limits = gpu.device.limits();
+        let bytes = limits
+            .max_buffer_size
+            .min(limits.max_storage_buffer_binding_size);
+        let per_chunk = ((bytes / 12) as usize).clamp(1, compute::MAX_DISPATCH_POINTS);
         let mut chunks = Vec::new();
         let mut start = 0;
         while start < cloud.len() {
             let end = (start + per_chunk).min(cloud.len());
-            // Each buffer holds at most 12 bytes per point of the chunk: within `max_buffer_size`.
+            // Each buffer holds at most 12 bytes per point of the chunk: within both limits.
             let vertex = |label: &str, bytes: &[u8]| -> Result<wgpu::Buffer, GpuError> {
                 gpu.check_lost()?;
                 Ok(gpu.buffer_with(
                     label,
                     bytes,
-                    wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+                    wgpu::BufferUsages::VERTEX
+                        | wgpu::BufferUsages::STORAGE
+                        | wgpu::BufferUsages::COPY_DST,
                 ))
             };
             chunks.push(Chunk {
@@ -525,126 +600,244 @@ impl PointRenderer {
         })
     }
 
-    /// Draws `layers` into `target` (format [`Self::format`]) with depth buffer `depth`
-    /// ([`DEPTH_FORMAT`], same size), clearing both first.
+    /// The depth texture and per-pixel words for targets of `width` × `height`.
+    pub fn targets(&self, gpu: &Gpu, width: u32, height: u32) -> ViewTargets {
+        let (width, height) = (width.max(1), height.max(1));
+        let depth = gpu
+            .device
+            .create_texture(&wgpu::TextureDescriptor {
+                label: Some("view depth"),
+                size: wgpu::Extent3d {
+                    width,
+                    height,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: DEPTH_FORMAT,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+                view_formats: &[],
+            })
+            .create_view(&Default::default());
+        let words = self.compute.words(gpu, width, height);
+        ViewTargets {
+            width,
+            height,
+            depth,
+            words,
+        }
+    }
+
+    /// Draws `layers` into `target` (format [`Self::format`], the size of `targets`), clearing it to the
+    /// frame's background first, with `raster` where it can (the compute rasteriser needs `targets`'
+    /// words). Returns the draw it used.
     pub fn render(
         &self,
         gpu: &Gpu,
         target: &wgpu::TextureView,
+        targets: &ViewTargets,
+        frame: &Frame,
+        layers: &[LayerDraw<'_>],
+        raster: Raster,
+    ) -> Raster {
+        let uniforms = layer_uniforms(gpu, frame, layers);
+        let mut encoder = gpu.encoder("points view");
+        let used = match (&targets.words, targets.draw_for(raster)) {
+            (Some(words), Raster::Compute) => {
+                self.compute
+                    .encode(gpu, &mut encoder, target, words, &uniforms, frame, layers);
+                Raster::Compute
+            }
+            _ => {
+                self.encode_quads(
+                    gpu,
+                    &mut encoder,
+                    target,
+                    &targets.depth,
+                    &uniforms,
+                    frame,
+                    layers,
+                );
+                Raster::Quads
+            }
+        };
+        gpu.queue.submit([encoder.finish()]);
+        used
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn encode_quads(
+        &self,
+        gpu: &Gpu,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
         depth: &wgpu::TextureView,
+        uniforms: &wgpu::Buffer,
         frame: &Frame,
         layers: &[LayerDraw<'_>],
     ) {
-        let device = &gpu.device;
-        let draws = layers.len().max(1) as u64;
-        let uniforms = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("points view"),
-            size: draws * UNIFORM_STRIDE,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let mut block = vec![0u8; (draws * UNIFORM_STRIDE) as usize];
-        for (k, d) in layers.iter().enumerate() {
-            let u = view_uniform(frame, d);
-            let at = k * UNIFORM_STRIDE as usize;
-            block[at..at + u.len()].copy_from_slice(&u);
-        }
-        gpu.queue.write_buffer(&uniforms, 0, &block);
-        let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        let bind = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("points view"),
             layout: &self.layout,
-            entries: &[wgpu::BindGroupEntry {
-                binding: 0,
-                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                    buffer: &uniforms,
-                    offset: 0,
-                    size: wgpu::BufferSize::new(UNIFORM_BYTES as u64),
-                }),
-            }],
+            entries: &[view_binding(uniforms)],
         });
-        let mut encoder = gpu.encoder("points view");
-        {
-            let [r, g, b] = frame.background;
-            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("points view"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: target,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color { r, g, b, a: 1.0 }),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: depth,
-                    depth_ops: Some(wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(1.0),
-                        store: wgpu::StoreOp::Discard,
-                    }),
-                    stencil_ops: None,
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("points view"),
+            color_attachments: &[Some(clear_to_background(target, frame))],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: depth,
+                depth_ops: Some(wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(1.0),
+                    store: wgpu::StoreOp::Discard,
                 }),
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
-            pass.set_pipeline(&self.pipeline);
-            for (k, d) in layers.iter().enumerate() {
-                pass.set_bind_group(0, &bind, &[(k as u64 * UNIFORM_STRIDE) as u32]);
-                let colour_scalar = match d.colouring {
-                    Colouring::Map { index, .. } => Some(index),
-                    _ => None,
-                };
-                for c in &d.layer.chunks {
-                    // A scalar the layer lacks is never read (mode and filter are off); any buffer of
-                    // 4 bytes per point stands in for it.
-                    let pick =
-                        |i: Option<usize>| i.and_then(|i| c.scalars.get(i)).unwrap_or(&c.colours);
-                    pass.set_vertex_buffer(0, c.positions.slice(..));
-                    pass.set_vertex_buffer(1, c.colours.slice(..));
-                    pass.set_vertex_buffer(2, pick(colour_scalar).slice(..));
-                    pass.set_vertex_buffer(3, pick(d.filter.map(|f| f.0)).slice(..));
-                    pass.draw(0..4, 0..c.points);
-                }
+                stencil_ops: None,
+            }),
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        pass.set_pipeline(&self.pipeline);
+        for (k, d) in layers.iter().enumerate() {
+            pass.set_bind_group(0, &bind, &[(k as u64 * UNIFORM_STRIDE) as u32]);
+            let p = LayerParams::of(d.colouring, d.filter, |i| d.layer.has_scalar(i));
+            for c in &d.layer.chunks {
+                pass.set_vertex_buffer(0, c.positions.slice(..));
+                pass.set_vertex_buffer(1, c.colours.slice(..));
+                pass.set_vertex_buffer(2, c.scalar(p.colour_scalar).slice(..));
+                pass.set_vertex_buffer(3, c.scalar(p.filter_scalar).slice(..));
+                pass.draw(0..4, 0..c.points);
             }
         }
-        gpu.queue.submit([encoder.finish()]);
     }
 }
 
-/// Bytes of `View` in `points.wgsl`: mat4 + 5 vec4.
+/// A colour attachment cleared to the frame's background.
+fn clear_to_background<'a>(
+    target: &'a wgpu::TextureView,
+    frame: &Frame,
+) -> wgpu::RenderPassColorAttachment<'a> {
+    let [r, g, b] = frame.background;
+    wgpu::RenderPassColorAttachment {
+        view: target,
+        depth_slice: None,
+        resolve_target: None,
+        ops: wgpu::Operations {
+            load: wgpu::LoadOp::Clear(wgpu::Color { r, g, b, a: 1.0 }),
+            store: wgpu::StoreOp::Store,
+        },
+    }
+}
+
+/// Binding 0 of both draws: one layer's `View` block at a dynamic offset.
+fn view_entry(visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding: 0,
+        visibility,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: true,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+fn view_binding(uniforms: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding: 0,
+        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: uniforms,
+            offset: 0,
+            size: wgpu::BufferSize::new(UNIFORM_BYTES as u64),
+        }),
+    }
+}
+
+/// The `View` blocks of `layers`, one per [`UNIFORM_STRIDE`].
+fn layer_uniforms(gpu: &Gpu, frame: &Frame, layers: &[LayerDraw<'_>]) -> wgpu::Buffer {
+    let draws = layers.len().max(1) as u64;
+    let mut block = vec![0u8; (draws * UNIFORM_STRIDE) as usize];
+    for (k, d) in layers.iter().enumerate() {
+        let p = LayerParams::of(d.colouring, d.filter, |i| d.layer.has_scalar(i));
+        let u = view_uniform(frame, d.layer.origin, &p);
+        let at = k * UNIFORM_STRIDE as usize;
+        block[at..at + u.len()].copy_from_slice(&u);
+    }
+    gpu.buffer_with("points view", &block, wgpu::BufferUsages::UNIFORM)
+}
+
+/// Bytes of `View` in `points_common.wgsl`: mat4 + 5 vec4.
 const UNIFORM_BYTES: usize = 64 + 5 * 16;
 
-fn view_uniform(frame: &Frame, d: &LayerDraw<'_>) -> [u8; UNIFORM_BYTES] {
-    let offset = (d.layer.origin - frame.reference).as_vec3();
-    let (w, h) = (frame.width.max(1) as f32, frame.height.max(1) as f32);
-    let (mode, solid, lo, hi, above) = match d.colouring {
-        Colouring::Rgb => (0u32, [0.0; 3], 0.0, 1.0, f32::INFINITY),
-        Colouring::Map { lo, hi, above, .. } => (1, [0.0; 3], lo, hi, above),
-        Colouring::Solid(c) => (2, c, 0.0, 1.0, f32::INFINITY),
-    };
-    let layer_has = |i: usize| d.layer.chunks.first().is_none_or(|c| i < c.scalars.len());
-    let mode =
-        if mode == 1 && !matches!(d.colouring, Colouring::Map { index, .. } if layer_has(index)) {
-            2
-        } else {
-            mode
+/// How one layer is coloured and filtered once its scalars are known: a colour map of a scalar the layer
+/// lacks falls back to solid black, a filter by one is off. Shared by both draws and the CPU reference.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct LayerParams {
+    /// 0 RGB, 1 colour map, 2 solid (as `View.mode.x`).
+    mode: u32,
+    solid: [f32; 3],
+    lo: f32,
+    hi: f32,
+    above: f32,
+    colour_scalar: Option<usize>,
+    filter_scalar: Option<usize>,
+    threshold: f32,
+}
+
+impl LayerParams {
+    pub(crate) fn of(
+        colouring: Colouring,
+        filter: Option<(usize, f32)>,
+        has: impl Fn(usize) -> bool,
+    ) -> Self {
+        let (mode, solid, lo, hi, above, colour_scalar) = match colouring {
+            Colouring::Rgb => (0u32, [0.0; 3], 0.0, 1.0, f32::INFINITY, None),
+            Colouring::Map {
+                index,
+                lo,
+                hi,
+                above,
+            } if has(index) => (1, [0.0; 3], lo, hi, above, Some(index)),
+            Colouring::Map { .. } => (2, [0.0; 3], 0.0, 1.0, f32::INFINITY, None),
+            Colouring::Solid(c) => (2, c, 0.0, 1.0, f32::INFINITY, None),
         };
-    let (filter_on, threshold) = match d.filter {
-        Some((i, t)) if layer_has(i) => (1u32, t),
-        _ => (0, 0.0),
-    };
+        let (filter_scalar, threshold) = match filter {
+            Some((i, t)) if has(i) => (Some(i), t),
+            _ => (None, 0.0),
+        };
+        // NaN would compare false everywhere: "no such value" is +∞.
+        let above = if above.is_nan() { f32::INFINITY } else { above };
+        Self {
+            mode,
+            solid,
+            lo,
+            hi,
+            above,
+            colour_scalar,
+            filter_scalar,
+            threshold,
+        }
+    }
+}
+
+fn view_uniform(frame: &Frame, origin: DVec3, p: &LayerParams) -> [u8; UNIFORM_BYTES] {
+    let offset = (origin - frame.reference).as_vec3();
+    let (w, h) = (frame.width.max(1) as f32, frame.height.max(1) as f32);
     let mut f = [0f32; 16 + 16];
     f[..16].copy_from_slice(&frame.view_proj.to_cols_array());
     f[16..20].copy_from_slice(&[offset.x, offset.y, offset.z, frame.point_size.max(0.5)]);
     f[20..24].copy_from_slice(&[w, h, 1.0 / w, 1.0 / h]);
-    f[24..28].copy_from_slice(&[solid[0], solid[1], solid[2], 1.0]);
-    // NaN would compare false everywhere: "no such value" is +∞.
-    let above = if above.is_nan() { f32::INFINITY } else { above };
-    f[28..32].copy_from_slice(&[lo, hi, threshold, above]);
+    f[24..28].copy_from_slice(&[p.solid[0], p.solid[1], p.solid[2], 1.0]);
+    f[28..32].copy_from_slice(&[p.lo, p.hi, p.threshold, p.above]);
     let mut out = [0u8; UNIFORM_BYTES];
     out[..128].copy_from_slice(bytemuck::cast_slice(&f));
-    let m = [mode, filter_on, frame.round as u32, 0];
+    let m = [
+        p.mode,
+        p.filter_scalar.is_some() as u32,
+        frame.round as u32,
+        0,
+    ];
     out[128..].copy_from_slice(bytemuck::cast_slice(&m));
     out
 }
