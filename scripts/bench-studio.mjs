@@ -112,32 +112,36 @@ async function launch() {
   };
 }
 
-const browser = await launch();
 try {
   for (const n of counts) {
     data = cloud(n);
     for (const draw of DRAWS) {
-      const page = await browser.page();
-      const t0 = Date.now();
-      await page.goto(`${base}/?url=${encodeURIComponent(`${base}/data/cloud.ply`)}#draw=${draw}`);
-      await page.waitFor(() => document.querySelectorAll('#layers li').length > 0 || document.querySelector('#view-messages li'));
-      const loadS = (Date.now() - t0) / 1000;
-      const err = await page.evaluate(() => document.querySelector('#view-messages')?.textContent || '');
-      if (err) throw new Error(`${n} points: ${err}`);
-      await page.waitFor(() => Number(document.querySelector('#view').dataset.frames || 0) >= 1);
-      const frames = Number(process.env.FRAMES || '10');
-      await page.evaluate((f) => document.querySelector('#view').dispatchEvent(new CustomEvent('silvr-bench', { detail: f })), frames);
-      await page.waitFor(() => document.querySelector('#view').dataset.benchMs);
-      const r = await page.evaluate(() => {
-        const v = document.querySelector('#view').dataset;
-        const adapter = document.querySelector('#adapter')?.dataset.name;
-        return { adapter, draw: v.benchDraw, ms_per_frame: Number(v.benchMs), points: Number(v.benchPoints), frames: Number(v.benchFrames) };
-      });
-      console.log(JSON.stringify({ browser: BROWSER, asked: draw, load_s: loadS, ...r }));
-      await page.close();
+      // A fresh browser per run: Firefox's GPU process did not survive a 10 M-point page after others.
+      const browser = await launch();
+      try {
+        const page = await browser.page();
+        const t0 = Date.now();
+        await page.goto(`${base}/?url=${encodeURIComponent(`${base}/data/cloud.ply`)}#draw=${draw}`);
+        await page.waitFor(() => document.querySelectorAll('#layers li').length > 0 || document.querySelector('#view-messages li'));
+        const loadS = (Date.now() - t0) / 1000;
+        const err = await page.evaluate(() => document.querySelector('#view-messages')?.textContent || '');
+        if (err) throw new Error(`${n} points: ${err}`);
+        await page.waitFor(() => Number(document.querySelector('#view').dataset.frames || 0) >= 1);
+        const frames = Number(process.env.FRAMES || '10');
+        await page.evaluate((f) => document.querySelector('#view').dispatchEvent(new CustomEvent('silvr-bench', { detail: f })), frames);
+        await page.waitFor(() => document.querySelector('#view').dataset.benchMs);
+        const r = await page.evaluate(() => {
+          const v = document.querySelector('#view').dataset;
+          const adapter = document.querySelector('#adapter')?.dataset.name;
+          return { adapter, draw: v.benchDraw, ms_per_frame: Number(v.benchMs), points: Number(v.benchPoints), frames: Number(v.benchFrames) };
+        });
+        console.log(JSON.stringify({ browser: BROWSER, asked: draw, load_s: loadS, ...r }));
+        await page.close();
+      } finally {
+        await browser.close();
+      }
     }
   }
 } finally {
-  await browser.close();
   server.close();
 }

@@ -28,10 +28,12 @@ const SCALE_BUDGET = 400_000;
 const FIRST_FRAME_POINTS = 200_000;
 /**
  * Bound on the 20 M-point map's first frame, from the page's request (s). Recorded on the busy 2-core VM
- * (2026-12-05): Chromium (SwiftShader) 3.2-4.3 s alone, 8.6-9.0 s late in the full suite and in CI; Firefox
- * (lavapipe) 1.0-1.5 s. That the first frame is the coarse one is asserted on its points, not its time.
+ * with the compute rasteriser (2026-12-05, session 26): Chromium (SwiftShader) 1.0 s and Firefox (lavapipe)
+ * 0.8 s in the view suite; with the instanced quads Chromium took 3.2-4.3 s alone and 8.6-9.0 s late in the
+ * full suite and in CI. 10 s is ten times the recorded time: room for a busy CI machine.
+ * That the first frame is the coarse one is asserted on its points, not its time.
  */
-const SCALE_FIRST_FRAME_S = 30;
+const SCALE_FIRST_FRAME_S = 10;
 const STARTUP_TIMEOUT_MS = 120_000;
 const STEP_TIMEOUT_MS = 90_000;
 /**

@@ -282,10 +282,13 @@ fn on_worker_message(page: &Shared, msg: ToPage) {
             ms_per_frame,
             points,
             draw,
+            wasm_bytes,
             ..
         } => {
             if let Some(c) = by_id(&doc, "view") {
                 c.set_attribute("data-bench-draw", draw.name()).ok();
+                c.set_attribute("data-bench-wasm-bytes", &wasm_bytes.to_string())
+                    .ok();
                 c.set_attribute("data-bench-ms", &ms_per_frame.to_string())
                     .ok();
                 c.set_attribute("data-bench-points", &points.to_string())

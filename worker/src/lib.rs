@@ -170,11 +170,12 @@ pub enum ToPage {
         seq: u32,
         draw: silvr_core::viewer::Raster,
     },
-    /// `frames` frames drawn back to back with `draw`.
+    /// `frames` frames drawn back to back with `draw`; `wasm_bytes`: the worker's wasm heap then.
     Bench {
         id: u32,
         frames: u32,
         draw: silvr_core::viewer::Raster,
+        wasm_bytes: u64,
         ms_per_frame: f64,
         points: u64,
     },

@@ -45,6 +45,11 @@ struct Studio {
     /// The page's number of the view in force.
     seq: u32,
     frames: u32,
+    /// A frame is on the GPU: at most one is, so a slow adapter never queues frames of views already
+    /// gone (an orbit drawn at the adapter's pace, showing the latest view each time).
+    drawing: bool,
+    /// The view changed while a frame was on the GPU: draw again when it is done.
+    redraw: bool,
     last_counts: Option<crate::studio::FilterCounts>,
     /// The COPC layers' streams, by layer index.
     streams: std::collections::HashMap<u32, Stream>,
@@ -144,6 +149,8 @@ async fn startup(state: Shared) {
         recovering: false,
         seq: 0,
         frames: 0,
+        drawing: false,
+        redraw: false,
         last_counts: None,
         streams: Default::default(),
         view_gen: 0,
@@ -483,12 +490,18 @@ async fn configure_view(studio: &Rc<RefCell<Studio>>, surface: wgpu::Surface<'st
     }
     surface.configure(&gpu.device, &config);
     let targets = renderer.targets(&gpu, w, h);
-    studio.borrow_mut().target = Some(Target {
-        surface,
-        config,
-        renderer,
-        targets,
-    });
+    {
+        let mut s = studio.borrow_mut();
+        s.target = Some(Target {
+            surface,
+            config,
+            renderer,
+            targets,
+        });
+        // A frame in flight on a lost device never reports: the new target starts with none.
+        s.drawing = false;
+        s.redraw = false;
+    }
     // Layers opened before the canvas came (or lost with the last device) get their buffers now.
     upload_pending(studio);
     draw(studio);
@@ -534,7 +547,9 @@ fn upload_pending(studio: &Rc<RefCell<Studio>>) {
     }
 }
 
-/// Draws the view into the canvas and reports the frame when the GPU has finished it.
+/// Draws the view into the canvas and reports the frame when the GPU has finished it; while a frame is
+/// still on the GPU, the view is drawn once that one is done instead (the latest view, however many
+/// changes came meanwhile).
 fn draw(studio: &Rc<RefCell<Studio>>) {
     let lost = studio.borrow().gpu.check_lost().err();
     if let Some(e) = lost {
@@ -545,6 +560,10 @@ fn draw(studio: &Rc<RefCell<Studio>>) {
         return recover(studio, why);
     }
     let mut s = studio.borrow_mut();
+    if s.drawing {
+        s.redraw = true;
+        return;
+    }
     let Some(t) = s.target.as_ref() else { return };
     let texture = match t.surface.get_current_texture() {
         wgpu::CurrentSurfaceTexture::Success(f) | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
@@ -579,15 +598,31 @@ fn draw(studio: &Rc<RefCell<Studio>>) {
     drop(draws);
     s.gpu.queue.present(texture);
     s.frames += 1;
+    s.drawing = true;
     let (n, seq) = (s.frames, s.seq);
+    // wgpu wants a `Send` callback: it only signals, and the task below (holding the studio) goes on.
+    let (done, finished) = futures_channel::oneshot::channel::<()>();
     s.gpu.queue.on_submitted_work_done(move || {
+        let _ = done.send(());
+    });
+    let again = studio.clone();
+    spawn_local(async move {
+        let _ = finished.await;
         post(&ToPage::Frame {
             n,
             ms: js_sys::Date::now() - start,
             points,
             seq,
             draw: used,
-        })
+        });
+        let redraw = {
+            let mut s = again.borrow_mut();
+            s.drawing = false;
+            std::mem::take(&mut s.redraw)
+        };
+        if redraw {
+            draw(&again);
+        }
     });
 }
 
@@ -1050,6 +1085,15 @@ fn insert_layer(studio: &Rc<RefCell<Studio>>, id: u32, layer: crate::studio::Lay
 /// Draws `frames` frames, each after the previous one finished on the GPU, and reports ms per frame.
 async fn bench(studio: Rc<RefCell<Studio>>, id: u32, frames: u32) {
     let frames = frames.clamp(1, 1000);
+    // Start with no frame on the GPU, so that every one below is drawn.
+    while studio.borrow().drawing {
+        let gpu = studio.borrow().gpu.clone();
+        let (tx, rx) = futures_channel::oneshot::channel();
+        gpu.queue.on_submitted_work_done(move || {
+            let _ = tx.send(());
+        });
+        let _ = rx.await;
+    }
     let start = js_sys::Date::now();
     for _ in 0..frames {
         draw(&studio);
@@ -1066,10 +1110,18 @@ async fn bench(studio: Rc<RefCell<Studio>>, id: u32, frames: u32) {
         Some(t) => t.targets.draw_for(s.view.draw),
         None => s.view.draw,
     };
+    // The wasm heap's size: what the worker holds (it only grows, so this is the high-water mark); GPU
+    // buffers live in the browser's GPU process and are counted per layer.
+    let wasm_bytes = wasm_bindgen::memory()
+        .dyn_into::<js_sys::WebAssembly::Memory>()
+        .ok()
+        .and_then(|m| m.buffer().dyn_into::<js_sys::ArrayBuffer>().ok())
+        .map_or(0, |b| b.byte_length() as u64);
     post(&ToPage::Bench {
         id,
         frames,
         draw,
+        wasm_bytes,
         ms_per_frame: (js_sys::Date::now() - start) / frames as f64,
         points,
     });
