@@ -367,15 +367,30 @@ fn large_clouds_are_decimated_with_a_stated_stride() {
     assert!((back - c.positions[4]).length() < 1e-4);
 }
 
-/// A dense scene: two layers (a far-from-origin cloud coloured by a filtered scalar, and a second cloud
-/// in RGB overlapping it), so footprints overlap and the depth test decides most pixels.
-fn dense_scene() -> (ViewCloud, ViewCloud) {
+/// A dense scene on the device: two layers (a far-from-origin cloud coloured by a filtered scalar, and a
+/// second cloud in RGB overlapping it), so footprints overlap and the depth test decides most pixels.
+struct Scene {
+    clouds: [ViewCloud; 2],
+    layers: [silvr_core::viewer::GpuLayer; 2],
+    threshold: f32,
+}
+
+/// Point sizes and round/square footprints both draws are compared at.
+const FOOTPRINTS: [(f32, bool); 4] = [(1.0, false), (3.0, false), (4.0, true), (7.5, true)];
+
+fn dense_scene(gpu: &Gpu, r: &PointRenderer) -> Scene {
     let a = ViewCloud::from_cloud(&cloud(7, 3000), ViewCloud::MAX_POINTS);
     let mut b = cloud(8, 1500);
     for p in &mut b.positions {
         p.z += 0.3;
     }
-    (a, ViewCloud::from_cloud(&b, ViewCloud::MAX_POINTS))
+    let b = ViewCloud::from_cloud(&b, ViewCloud::MAX_POINTS);
+    let threshold = a.scalar("log_std_combined").unwrap().quantile(0.6).unwrap();
+    Scene {
+        layers: [r.upload(gpu, &a).unwrap(), r.upload(gpu, &b).unwrap()],
+        clouds: [a, b],
+        threshold,
+    }
 }
 
 /// Pixels of `a` and `b` that differ by more than `tol` (0-255) in a channel.
@@ -386,58 +401,57 @@ fn differing(a: &[[u8; 4]], b: &[[u8; 4]], tol: u8) -> usize {
         .count()
 }
 
-/// The dense scene's draws and their reference layers, for one threshold.
-fn scene_draws<'a>(
-    layers: [(&'a ViewCloud, &'a silvr_core::viewer::GpuLayer); 2],
-    threshold: f32,
-) -> (Vec<LayerDraw<'a>>, Vec<ReferenceLayer<'a>>) {
-    let s = layers[0].0.scalar("log_std_combined").unwrap();
-    let (lo, hi) = s.range().unwrap();
-    let styles = [
-        (
-            Colouring::Map {
-                index: 0,
-                lo,
-                hi,
-                above: s.quantile(0.8).unwrap(),
-            },
-            Some((0, threshold)),
-        ),
-        (Colouring::Rgb, None),
-    ];
-    let draws = layers
-        .iter()
-        .zip(styles)
-        .map(|(&(_, layer), (colouring, filter))| LayerDraw {
-            layer,
-            colouring,
-            filter,
-        })
-        .collect();
-    let refs = layers
-        .iter()
-        .zip(styles)
-        .map(|(&(cloud, _), (colouring, filter))| ReferenceLayer {
-            cloud,
-            colouring,
-            filter,
-        })
-        .collect();
-    (draws, refs)
+impl Scene {
+    /// The scene's draws and their reference layers.
+    fn draws(&self) -> (Vec<LayerDraw<'_>>, Vec<ReferenceLayer<'_>>) {
+        let s = self.clouds[0].scalar("log_std_combined").unwrap();
+        let (lo, hi) = s.range().unwrap();
+        let styles = [
+            (
+                Colouring::Map {
+                    index: 0,
+                    lo,
+                    hi,
+                    above: s.quantile(0.8).unwrap(),
+                },
+                Some((0, self.threshold)),
+            ),
+            (Colouring::Rgb, None),
+        ];
+        let draws = self
+            .layers
+            .iter()
+            .zip(styles)
+            .map(|(layer, (colouring, filter))| LayerDraw {
+                layer,
+                colouring,
+                filter,
+            })
+            .collect();
+        let refs = self
+            .clouds
+            .iter()
+            .zip(styles)
+            .map(|(cloud, (colouring, filter))| ReferenceLayer {
+                cloud,
+                colouring,
+                filter,
+            })
+            .collect();
+        (draws, refs)
+    }
 }
 
 #[test]
 fn the_compute_rasteriser_draws_its_cpu_reference_picture() {
     let Some(gpu) = common::gpu() else { return };
     let r = pollster::block_on(PointRenderer::new(&gpu, FORMAT)).unwrap();
-    let (a, b) = dense_scene();
-    let (ga, gb) = (r.upload(&gpu, &a).unwrap(), r.upload(&gpu, &b).unwrap());
-    let threshold = a.scalar("log_std_combined").unwrap().quantile(0.6).unwrap();
-    let (draws, refs) = scene_draws([(&a, &ga), (&b, &gb)], threshold);
+    let scene = dense_scene(&gpu, &r);
+    let (draws, refs) = scene.draws();
     // One set of targets for every frame, as the studio keeps them: each frame must clear them (they
     // start poisoned).
     let targets = r.targets(&gpu, W, H);
-    for (size, round) in [(1.0, false), (3.0, false), (4.0, true), (7.5, true)] {
+    for (size, round) in FOOTPRINTS {
         let mut f = frame(size);
         f.round = round;
         f.background = [0.1, 0.2, 0.3];
@@ -466,11 +480,9 @@ fn the_compute_rasteriser_draws_its_cpu_reference_picture() {
 fn compute_and_quads_make_the_same_picture() {
     let Some(gpu) = common::gpu() else { return };
     let r = pollster::block_on(PointRenderer::new(&gpu, FORMAT)).unwrap();
-    let (a, b) = dense_scene();
-    let (ga, gb) = (r.upload(&gpu, &a).unwrap(), r.upload(&gpu, &b).unwrap());
-    let threshold = a.scalar("log_std_combined").unwrap().quantile(0.6).unwrap();
-    let (draws, _) = scene_draws([(&a, &ga), (&b, &gb)], threshold);
-    for (size, round) in [(1.0, false), (3.0, false), (4.0, true), (7.5, true)] {
+    let scene = dense_scene(&gpu, &r);
+    let (draws, _) = scene.draws();
+    for (size, round) in FOOTPRINTS {
         let mut f = frame(size);
         f.round = round;
         let compute = render(&gpu, &r, &f, &draws, Raster::Compute);
