@@ -10,8 +10,8 @@ use serde::{Deserialize, Serialize};
 use silvr_core::copc::lod::{self, LodView};
 use silvr_core::copc::read::{CopcHead, Entry, NodePoints, VoxelKey};
 use silvr_core::pointcloud::PointCloud;
+use silvr_core::viewer::SHOWN_FIELDS;
 
-use crate::studio::SHOWN_FIELDS;
 use crate::view::{Camera, BUDGET_RANGE};
 
 /// Points loaded by default on a software adapter: with the compute rasteriser SwiftShader draws 250 k

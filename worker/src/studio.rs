@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 use silvr_core::pointcloud::{read_ply_bytes_with, write_ply_bytes, PlyReadOptions};
 use silvr_core::uncertainty::filter::default_threshold;
 use silvr_core::viewer::{
-    Colouring, GpuLayer, LayerDraw, ViewCloud, ERROR_FIELD, UNCERTAINTY_FIELDS,
+    Colouring, GpuLayer, LayerDraw, ViewCloud, SHOWN_FIELDS, UNCERTAINTY_FIELDS,
 };
 
 use crate::view::{Colour, ViewState};
@@ -85,14 +85,6 @@ pub struct Layer {
     pub cloud: ViewCloud,
     pub gpu: Option<GpuLayer>,
 }
-
-/// The scalar properties the studio colours and filters by; the others are not decoded at all.
-pub const SHOWN_FIELDS: [&str; 4] = [
-    UNCERTAINTY_FIELDS[0],
-    UNCERTAINTY_FIELDS[1],
-    UNCERTAINTY_FIELDS[2],
-    ERROR_FIELD,
-];
 
 /// Parses a PLY file into a layer (the core's reader: one reader for native and browser). Errors name
 /// the source and the problem.

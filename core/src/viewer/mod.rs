@@ -28,6 +28,13 @@ pub mod reference;
 pub const UNCERTAINTY_FIELDS: [&str; 3] = ["log_std_combined", "log_std_colour", "log_std_depth"];
 /// The evaluator's per-point distance to ground truth (`silvr eval --error-ply`), metres.
 pub const ERROR_FIELD: &str = "error_m";
+/// The scalar properties the studio colours and filters by; a reader for the view decodes no others.
+pub const SHOWN_FIELDS: [&str; 4] = [
+    UNCERTAINTY_FIELDS[0],
+    UNCERTAINTY_FIELDS[1],
+    UNCERTAINTY_FIELDS[2],
+    ERROR_FIELD,
+];
 
 /// Colour of a value the map marks as beyond meaning (an uncertainty that reads its prior:
 /// "unconstrained"), apart from Turbo's range and from the grey of a missing value.
