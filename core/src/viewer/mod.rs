@@ -435,7 +435,8 @@ const UNIFORM_STRIDE: u64 = 256;
 pub struct PointRenderer {
     pipeline: wgpu::RenderPipeline,
     layout: wgpu::BindGroupLayout,
-    compute: compute::ComputeRaster,
+    /// `None` where the adapter cannot build the compute draw.
+    compute: Option<compute::ComputeRaster>,
     pub format: wgpu::TextureFormat,
 }
 
@@ -444,7 +445,7 @@ pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 
 /// What a frame is drawn with besides the colour target, sized to it: the quad draw's depth texture and
 /// the compute rasteriser's per-pixel words (absent where a target of this size exceeds the adapter's
-/// storage-binding limit: then the quads draw).
+/// storage-binding limit, or the adapter cannot build the compute draw: then the quads draw).
 pub struct ViewTargets {
     pub width: u32,
     pub height: u32,
@@ -544,13 +545,25 @@ impl PointRenderer {
             multiview_mask: None,
             cache: None,
         });
-        let compute = compute::ComputeRaster::new(gpu, format);
         if let Some(err) = scope.pop().await {
             return Err(GpuError::Kernel {
                 kernel: "points".into(),
                 detail: err.to_string(),
             });
         }
+        // The compute draw is a speed-up, not a requirement: an adapter that cannot build it (storage
+        // buffers in fragment shaders, atomics) still gets the view, drawn with quads.
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let compute = compute::ComputeRaster::new(gpu, format);
+        let compute = match scope.pop().await {
+            None => Some(compute),
+            Some(err) => {
+                log::warn!(
+                    "the compute point draw cannot be built here, quads draw instead: {err}"
+                );
+                None
+            }
+        };
         Ok(Self {
             pipeline,
             layout,
@@ -627,7 +640,10 @@ impl PointRenderer {
                 view_formats: &[],
             })
             .create_view(&Default::default());
-        let words = self.compute.words(gpu, width, height);
+        let words = self
+            .compute
+            .as_ref()
+            .and_then(|c| c.words(gpu, width, height));
         ViewTargets {
             width,
             height,
@@ -650,10 +666,9 @@ impl PointRenderer {
     ) -> Raster {
         let uniforms = layer_uniforms(gpu, frame, layers);
         let mut encoder = gpu.encoder("points view");
-        let used = match (&targets.words, targets.draw_for(raster)) {
-            (Some(words), Raster::Compute) => {
-                self.compute
-                    .encode(gpu, &mut encoder, target, words, &uniforms, frame, layers);
+        let used = match (&self.compute, &targets.words, targets.draw_for(raster)) {
+            (Some(compute), Some(words), Raster::Compute) => {
+                compute.encode(gpu, &mut encoder, target, words, &uniforms, frame, layers);
                 Raster::Compute
             }
             _ => {
