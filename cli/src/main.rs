@@ -159,10 +159,12 @@ enum Command {
         /// than COLMAP's 0.0067 (tuned for photographs) so small or low-contrast images keep enough.
         #[arg(long)]
         peak_threshold: Option<f32>,
-        /// Find features on images downscaled by this integer factor (block means; large photographs:
-        /// COLMAP caps them at 3200 px). Poses and the COLMAP model stay at full resolution.
-        #[arg(long, default_value_t = 1)]
-        downscale: u32,
+        /// Find features on images downscaled by this integer factor (block means). Default: the
+        /// smallest factor that brings the largest image within about a megapixel, the size the
+        /// stage's thresholds are tuned at (2 for 1080p). Poses and the COLMAP model stay at full
+        /// resolution.
+        #[arg(long)]
+        downscale: Option<u32>,
         /// No progress lines.
         #[arg(long)]
         quiet: bool,
@@ -1197,7 +1199,7 @@ fn demo(
             refine_extrinsics: false,
             max_features: 4096,
             peak_threshold: None,
-            downscale: 1,
+            downscale: None,
             quiet: true,
         })?;
         let e = &r["errors"];

@@ -25,8 +25,9 @@ pub struct PosesArgs {
     pub max_features: usize,
     /// SIFT's DoG peak threshold, when not the stage's default.
     pub peak_threshold: Option<f32>,
-    /// Features found on images downscaled by this factor (1: full size).
-    pub downscale: u32,
+    /// Features found on images downscaled by this factor (1: full size); `None`: the working
+    /// resolution's ([`poses::working_downscale`] of the largest image).
+    pub downscale: Option<u32>,
     pub quiet: bool,
 }
 
@@ -36,7 +37,6 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
     let text =
         std::fs::read_to_string(&json).with_context(|| format!("reading {}", json.display()))?;
     let (ns, _, _) = dataset::parse_frames(&text, &json)?;
-    let f = a.downscale.max(1);
     // Frames whose image is missing are left out and named, as the training loader does (captures
     // often list more images than they ship); they keep their prior pose in the output.
     let (present, missing): (Vec<usize>, Vec<usize>) =
@@ -57,7 +57,7 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
                 .join(", ")
         );
     }
-    // Each frame at the size its features are found at, and its full-size camera (the COLMAP model's).
+    // Each frame's full-size camera (the COLMAP model's); the working size follows from the largest.
     let (full_models, frames): (Vec<CameraModel>, Vec<PoseFrame>) = present
         .iter()
         .map(|&i| {
@@ -65,7 +65,7 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
             let (model, prior) = fr.camera(&json)?;
             let frame = PoseFrame {
                 name: fr.file_path.clone(),
-                model: model.downscaled(f),
+                model,
                 prior,
                 keyframe: fr.keyframe,
                 camera: fr.camera.clone(),
@@ -75,6 +75,33 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
         .collect::<Result<Vec<_>, dataset::DatasetError>>()?
         .into_iter()
         .unzip();
+    let largest = full_models
+        .iter()
+        .max_by_key(|m| m.width as u64 * m.height as u64);
+    let f = match (a.downscale, largest) {
+        (Some(f), _) => f.max(1),
+        (None, Some(m)) => poses::working_downscale(m.width, m.height),
+        (None, None) => 1,
+    };
+    let frames: Vec<PoseFrame> = frames
+        .into_iter()
+        .map(|fr| PoseFrame {
+            model: fr.model.downscaled(f),
+            ..fr
+        })
+        .collect();
+    if let (Some(m), false) = (largest, a.quiet) {
+        eprintln!(
+            "[poses] features on {}x{} images (downscale {f}{})",
+            m.width / f,
+            m.height / f,
+            if a.downscale.is_some() {
+                ""
+            } else {
+                ", the working resolution: about a megapixel"
+            }
+        );
+    }
     if a.out.exists() {
         anyhow::bail!("{} exists; choose a new folder", a.out.display());
     }
@@ -279,6 +306,7 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
         "poses": rep,
         "errors": errors,
         "downscale": f,
+        "downscale_auto": a.downscale.is_none(),
         "skipped": skipped,
     });
     dataset::write_atomic(

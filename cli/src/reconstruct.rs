@@ -474,7 +474,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
                 refine_extrinsics: false,
                 max_features: 4096,
                 peak_threshold: None,
-                downscale: 1,
+                downscale: None,
                 quiet: true,
             })?
         };

@@ -992,11 +992,13 @@ fn poses_undoes_a_perturbation_and_leaves_out_a_missing_image() {
     assert!(!tmp.path().join("tiny").exists());
 }
 
-/// Real captures (skip cleanly when `../shared/data/real` is absent): the fox with its poses perturbed
-/// (1 % of the viewing distance, 0.5°) comes back ≥ 5x closer to its own poses with every present image
-/// registered and the 17 missing ones named (measured 11x / 13x; the held-out PSNR this buys, 17.1 →
-/// 26.2 dB, is in BENCHMARKS.md); the DGP scene's own poses adjust with all 18 images registered and the
-/// reprojection RMSE below a pixel.
+/// Real captures (skip cleanly when `../shared/data/real` is absent): the fox at its own 1080×1920, its
+/// poses given a drifting prior (1 % drift along the listed order, 0.02 units / 0.2° of noise per frame)
+/// and refined with the default settings, comes back ≥ 5x closer to its own poses (centres, rotations
+/// and consecutive relative rotations) with every present image registered and the 17 missing ones
+/// named. The defaults work at about a megapixel (540×960 here; measured 10x / 6.9x / 17x); at full size
+/// the rotations came back only 1.3x better. The DGP scene's own poses adjust with all 18 images
+/// registered and the reprojection RMSE below a pixel.
 #[test]
 fn real_captures_register_every_image_when_present() {
     let tmp = tempfile::tempdir().unwrap();
@@ -1009,9 +1011,11 @@ fn real_captures_register_every_image_when_present() {
             "--out",
             pert.to_str().unwrap(),
             "--noise",
-            "0.03",
+            "0.02",
             "--noise-deg",
-            "0.5",
+            "0.2",
+            "--drift",
+            "0.01",
         ]);
         let out = tmp.path().join("fox-ref");
         let said = ok(&[
@@ -1021,19 +1025,19 @@ fn real_captures_register_every_image_when_present() {
             out.to_str().unwrap(),
             "--gt",
             fox.to_str().unwrap(),
-            "--downscale",
-            "4",
         ]);
         assert!(said.contains("left out 17 of 67 frames"), "{said}");
         assert!(said.contains("registered 50/50"), "{said}");
+        assert!(
+            said.contains("features on 540x960 images (downscale 2"),
+            "{said}"
+        );
         let r = json(&out.join("report.json"));
         let (p, q) = (&r["errors"]["prior"], &r["errors"]["refined"]);
         let f = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap();
-        assert!(
-            f(q, "ate_rmse_m") * 5.0 < f(p, "ate_rmse_m")
-                && f(q, "rot_rmse_deg") * 5.0 < f(p, "rot_rmse_deg"),
-            "{r}"
-        );
+        for k in ["ate_rmse_m", "rot_rmse_deg", "rpe_rot_rmse_deg"] {
+            assert!(f(q, k) * 5.0 < f(p, k), "{k}: {r}");
+        }
     }
     if let Some(dgp) = silvr_tests::shared_data("real/dgp_scene_02") {
         let ds = tmp.path().join("dgp");

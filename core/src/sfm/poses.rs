@@ -50,6 +50,23 @@ pub struct GrayImage {
     pub sky: Option<Vec<bool>>,
 }
 
+/// Pixels of the working image the poses stage aims for when the user names no downscale: about a
+/// megapixel. Its thresholds (SIFT's scale range, the reprojection gates in pixels, the Huber scale) are
+/// tuned at that size; on the fox capture at its own 1080×1920 with a drifting prior, full size left the
+/// rotations 1.3x better than the prior's, half size 6.9x (BENCHMARKS.md, poses at a working resolution).
+pub const WORKING_PIXELS: u64 = 1 << 20;
+
+/// The smallest integer downscale that brings the largest image (`width`, `height` in pixels) within
+/// [`WORKING_PIXELS`]: 1 for images of a megapixel or less, 2 for 1080p, 3 up to 9 MP.
+pub fn working_downscale(width: u32, height: u32) -> u32 {
+    let px = width as u64 * height as u64;
+    let mut f = 1u64;
+    while px > WORKING_PIXELS * f * f {
+        f += 1;
+    }
+    f as u32
+}
+
 /// Settings of every stage.
 #[derive(Clone, Debug)]
 pub struct PosesOptions {
@@ -851,6 +868,18 @@ fn align_to_prior(refined: &[Se3], prior: &[Se3]) -> Result<(Sim3, usize), Poses
 mod tests {
     use super::*;
     use glam::DQuat;
+
+    #[test]
+    fn working_resolution_is_about_a_megapixel() {
+        assert_eq!(working_downscale(360, 270), 1);
+        assert_eq!(working_downscale(1241, 376), 1); // KITTI
+        assert_eq!(working_downscale(1024, 1024), 1);
+        assert_eq!(working_downscale(1025, 1024), 2);
+        assert_eq!(working_downscale(1080, 1920), 2); // the fox, 1080p
+        assert_eq!(working_downscale(1936, 1216), 2); // DGP
+        assert_eq!(working_downscale(4000, 3000), 4);
+        assert_eq!(working_downscale(0, 0), 1);
+    }
 
     fn frame(
         name: &str,
