@@ -110,9 +110,18 @@ fn aligned_errors(
     // Camera centres alone leave a straight path's roll about its own axis to the noise (a street
     // walked in a line measured 5° of "rotation error" that way), so each frame also contributes the
     // tips of its axes, 1 m out in the exact frame and 1 m / scale in the estimate's (the scale from the
-    // centres, which a line does determine).
+    // centres' spreads, which a line does determine; Umeyama on a line's centres has no rotation).
     let scale0 = if with_scale {
-        Sim3::umeyama(&src, &dst, true)?.scale.max(1e-12)
+        let spread = |p: &[DVec3]| {
+            let m = p.iter().copied().sum::<DVec3>() / p.len() as f64;
+            p.iter().map(|x| x.distance_squared(m)).sum::<f64>()
+        };
+        let s = (spread(&dst) / spread(&src)).sqrt();
+        if s.is_finite() && s > 0.0 {
+            s
+        } else {
+            Sim3::umeyama(&src, &dst, true)?.scale.max(1e-12)
+        }
     } else {
         1.0
     };
