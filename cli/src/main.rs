@@ -61,6 +61,10 @@ enum Command {
         out: PathBuf,
         #[arg(long)]
         overwrite: bool,
+        /// Generate only the first N keyframes of the preset's walk (the same poses and world; for
+        /// growth curves and quick looks).
+        #[arg(long)]
+        keyframes: Option<usize>,
         /// Also record the world as a ROS 2 bag (Oxford Spires topics, Hesai clouds) at this path, with
         /// the rig file `silvr ingest` reads it with beside it (NAME.rig.yaml).
         #[arg(long)]
@@ -500,9 +504,10 @@ fn main() {
             seed,
             out,
             overwrite,
+            keyframes,
             mcap,
         } => match mcap {
-            None => synth(&preset, seed, &out, overwrite).map(|_| ()),
+            None => synth(&preset, seed, &out, overwrite, keyframes).map(|_| ()),
             Some(bag) => synth_bag(&preset, seed, &out, overwrite, &bag),
         },
         Command::Ingest(c) => ingest::run(c, open_gpu),
@@ -959,13 +964,17 @@ fn synth_with(
     let summary = pollster::block_on(generate::generate(preset, gpu, out, overwrite, &mut |p| {
         if p.done != last {
             last = p.done;
-            eprintln!(
-                "[synth] {} {}/{} ({:.1} s)",
-                p.stage,
-                p.done,
-                p.total,
-                start.elapsed().as_secs_f64()
-            );
+            let t = start.elapsed().as_secs_f64();
+            // The keyframes take nearly all the time; the ETA is theirs.
+            let eta = if p.stage == "keyframes" && p.done > 0 {
+                format!(
+                    ", ETA {:.0} s",
+                    t / p.done as f64 * (p.total - p.done) as f64
+                )
+            } else {
+                String::new()
+            };
+            eprintln!("[synth] {} {}/{} ({t:.1} s{eta})", p.stage, p.done, p.total);
         }
     }))
     .with_context(|| {
@@ -1035,8 +1044,19 @@ fn synth_bag(preset: &str, seed: u64, out: &Path, overwrite: bool, bag: &Path) -
     Ok(())
 }
 
-fn synth(preset: &str, seed: u64, out: &Path, overwrite: bool) -> Result<generate::SynthSummary> {
-    let preset = preset_by_name(preset, seed)?;
+fn synth(
+    preset: &str,
+    seed: u64,
+    out: &Path,
+    overwrite: bool,
+    keyframes: Option<usize>,
+) -> Result<generate::SynthSummary> {
+    let mut preset = preset_by_name(preset, seed)?;
+    if let Some(n) = keyframes {
+        preset = preset
+            .prefix(n)
+            .map_err(|e| anyhow::anyhow!("--keyframes {n}: {e}"))?;
+    }
     let gpu = open_gpu()?;
     synth_with(&gpu, &preset, out, overwrite)
 }

@@ -325,9 +325,20 @@ impl Hasher for VoxelHasher {
     fn finish(&self) -> u64 {
         self.0
     }
+    /// Eight bytes a round: an `[i64; 3]` key arrives as one 24-byte write (integers hash their slices
+    /// as bytes), which a round per byte made 24 rounds.
     fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.write_u64(b as u64);
+        let mut words = bytes.chunks_exact(8);
+        for w in &mut words {
+            let mut b = [0u8; 8];
+            b.copy_from_slice(w);
+            self.write_u64(u64::from_le_bytes(b));
+        }
+        let rest = words.remainder();
+        if !rest.is_empty() {
+            let mut b = [0u8; 8];
+            b[..rest.len()].copy_from_slice(rest);
+            self.write_u64(u64::from_le_bytes(b) ^ ((rest.len() as u64) << 59));
         }
     }
     fn write_u64(&mut self, v: u64) {

@@ -3,9 +3,11 @@
 //! the same `lidar` code that processes real data, projection on the GPU), and exact ground truth.
 
 use std::collections::{BTreeMap, HashSet};
+use std::hash::BuildHasherDefault;
 use std::path::{Path, PathBuf};
 
 use glam::{DVec2, DVec3};
+use rayon::prelude::*;
 use serde::Serialize;
 
 use super::raycast::{Scene, Shape, GROUND};
@@ -17,7 +19,7 @@ use crate::eval::occupancy::OccupancyGrid;
 use crate::geometry::{Se3, Trajectory};
 use crate::gpu::{Gpu, GpuError};
 use crate::lidar::{deskew, images, products};
-use crate::pointcloud::{write_ply_bytes, PointCloud};
+use crate::pointcloud::{write_ply_bytes, PointCloud, VoxelHasher};
 use crate::rig::RigCamera;
 
 /// Generator version, recorded in the manifest; bump when output bytes change for the same seed.
@@ -158,7 +160,7 @@ pub async fn generate_recording(
     }
     let cams: Vec<&str> = preset.rig.cameras.iter().map(|c| c.name.as_str()).collect();
     let seen_voxel = preset.observed_voxel;
-    let mut seen: HashSet<[i64; 3]> = HashSet::new();
+    let mut seen: HashSet<[i64; 3], BuildHasherDefault<VoxelHasher>> = HashSet::default();
     let vkey = |p: DVec3| -> [i64; 3] { (p / seen_voxel).floor().as_i64vec3().to_array() };
     let mut observed =
         OccupancyGrid::new(preset.observed_voxel).map_err(|e| SynthError::Other(e.to_string()))?;
@@ -295,26 +297,37 @@ pub async fn generate_recording(
                 &png_gray8(w, h, &frame.label),
             )?;
             // What the camera observed: every pixel's surface; free space along every 4th pixel's ray (in x and y).
+            // Rows in parallel; each row's keys deduplicated before they meet the shared set.
             let max_angle = model.valid_angle();
+            let rows: Vec<(Vec<[i64; 3]>, Vec<DVec3>)> = (0..h)
+                .into_par_iter()
+                .map(|y| {
+                    let (mut keys, mut ends) = (Vec::new(), Vec::new());
+                    for x in 0..w {
+                        let r = frame.range[(y * w + x) as usize] as f64;
+                        if r <= 0.0 {
+                            continue;
+                        }
+                        let Some(dir) =
+                            model.unproject_within(DVec2::new(x as f64, y as f64), max_angle)
+                        else {
+                            continue;
+                        };
+                        let p = t_world_cam.transform_point(dir * r);
+                        keys.push(vkey(p));
+                        if x % 4 == 0 && y % 4 == 0 {
+                            ends.push(p);
+                        }
+                    }
+                    keys.sort_unstable();
+                    keys.dedup();
+                    (keys, ends)
+                })
+                .collect();
             let mut cam_ends = Vec::new();
-            for y in 0..h {
-                for x in 0..w {
-                    let i = (y * w + x) as usize;
-                    let r = frame.range[i] as f64;
-                    if r <= 0.0 {
-                        continue;
-                    }
-                    let Some(dir) =
-                        model.unproject_within(DVec2::new(x as f64, y as f64), max_angle)
-                    else {
-                        continue;
-                    };
-                    let p = t_world_cam.transform_point(dir * r);
-                    seen.insert(vkey(p));
-                    if x % 4 == 0 && y % 4 == 0 {
-                        cam_ends.push(p);
-                    }
-                }
+            for (keys, ends) in rows {
+                seen.extend(keys);
+                cam_ends.extend(ends);
             }
 
             observed.insert_scan(t_world_cam.trans, &cam_ends);
@@ -411,7 +424,7 @@ pub async fn generate_recording(
     o.write_json("transforms.json", &transforms)?;
     // The SLAM-like prior: the same frames at the prior's poses (the rig moves with its drifted base;
     // extrinsics exact), its TUM files, and which keyframes carry a gross error.
-    let (prior, gross) = prior::prior_trajectory(&base_poses, &preset.prior, preset.seed);
+    let (prior, gross) = prior_of_walk(preset, &base_poses);
     let mut prior_tf = transforms.clone();
     for f in &mut prior_tf.frames {
         let k = f.keyframe.unwrap_or(0);
@@ -492,6 +505,18 @@ pub async fn generate_recording(
 
 /// Samples every surface on a grid of `spacing`, keeping samples that `keep` accepts (observed space) and
 /// that are not buried inside another solid. Deterministic order: primitives in order, then grid order.
+/// The SLAM-like prior of the generated keyframes (`base`): drawn over the preset's whole walk when it is
+/// a prefix ([`Preset::prefix`]), so the first N keyframes carry the same prior whatever N is.
+fn prior_of_walk(preset: &Preset, base: &[Se3]) -> (Vec<Se3>, Vec<usize>) {
+    let n = base.len();
+    let walk = preset.walk_keyframes.unwrap_or(n).max(n);
+    let mut all = base.to_vec();
+    all.extend((n..walk).map(|k| preset.t_world_base(preset.image_time(k))));
+    let (mut prior, gross) = prior::prior_trajectory(&all, &preset.prior, preset.seed);
+    prior.truncate(n);
+    (prior, gross.into_iter().filter(|&k| k < n).collect())
+}
+
 pub fn sample_gt_cloud(
     world: &World,
     spacing: f64,
@@ -760,4 +785,35 @@ pub fn mesh_ply(world: &World) -> Vec<u8> {
         out.extend_from_slice(rgb);
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A prefix of a walk (`silvr synth --keyframes N`) carries the walk's own prior on its keyframes:
+    /// drift and noise drawn over the whole walk, so growth curves compare the same trajectory.
+    #[test]
+    fn a_prefix_carries_the_whole_walks_prior() {
+        let full = Preset::default_preset(3);
+        let base: Vec<Se3> = (0..full.keyframes)
+            .map(|k| full.t_world_base(full.image_time(k)))
+            .collect();
+        let (whole, gross) = prior_of_walk(&full, &base);
+        assert_eq!(whole.len(), full.keyframes);
+        assert!(!gross.is_empty(), "the default walk has gross errors");
+        let part = full.clone().prefix(50).unwrap();
+        let (prefix, prefix_gross) = prior_of_walk(&part, &base[..50]);
+        assert_eq!(prefix, whole[..50]);
+        assert_eq!(
+            prefix_gross,
+            gross
+                .iter()
+                .copied()
+                .filter(|&k| k < 50)
+                .collect::<Vec<_>>()
+        );
+        assert!(full.clone().prefix(2).is_err());
+        assert!(full.clone().prefix(full.keyframes + 1).is_err());
+    }
 }

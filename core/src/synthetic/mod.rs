@@ -45,6 +45,10 @@ pub struct Preset {
     /// How the SLAM-like prior trajectory (`transforms_prior.json`, `poses/prior_*`) errs.
     #[serde(default)]
     pub prior: prior::PriorParams,
+    /// Keyframes of the whole walk when this preset is a prefix of it ([`Preset::prefix`]): the prior's
+    /// drift and noise are drawn over the whole walk, so a prefix's prior is the walk's.
+    #[serde(default)]
+    pub walk_keyframes: Option<usize>,
 }
 
 impl Preset {
@@ -66,6 +70,7 @@ impl Preset {
             gt_spacing: 0.03,
             observed_voxel: 0.1,
             prior: prior::PriorParams::default(),
+            walk_keyframes: None,
         }
     }
 
@@ -101,6 +106,7 @@ impl Preset {
             gt_spacing: 0.03,
             observed_voxel: 0.1,
             prior: prior::PriorParams::default(),
+            walk_keyframes: None,
         }
     }
 
@@ -115,6 +121,21 @@ impl Preset {
     }
 
     /// Sweep start time of keyframe `k`.
+    /// The first `n` keyframes of the same walk: the same world, poses and prior at every kept
+    /// keyframe (the interval stays the full walk's), for growth curves. 3 keyframes at least (poses and
+    /// evaluation need them), at most the preset's.
+    pub fn prefix(mut self, n: usize) -> Result<Self, String> {
+        if n < 3 || n > self.keyframes {
+            return Err(format!(
+                "the {} preset has {} keyframes; a prefix keeps 3 to {}",
+                self.name, self.keyframes, self.keyframes
+            ));
+        }
+        self.walk_keyframes = Some(self.walk_keyframes.unwrap_or(self.keyframes));
+        self.keyframes = n;
+        Ok(self)
+    }
+
     pub fn sweep_start(&self, k: usize) -> f64 {
         k as f64 * self.keyframe_interval
     }
