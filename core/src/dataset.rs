@@ -158,6 +158,15 @@ impl DatasetWriter {
         Ok(())
     }
 
+    /// Records a dataset-relative file written in place at [`Self::path`] by a streaming writer (a file
+    /// too large to hold in memory first), with its size.
+    pub fn written(&self, rel: &str) -> Result<(), DatasetError> {
+        let p = self.path(rel);
+        let len = fs::metadata(&p).map_err(io_err(&p))?.len();
+        self.files.borrow_mut().insert(rel.to_string(), len);
+        Ok(())
+    }
+
     /// Writes `value` as pretty-printed JSON (dataset files hold plain data, which always serialises).
     pub fn write_json(&self, rel: &str, value: &impl Serialize) -> Result<(), DatasetError> {
         let text = serde_json::to_string_pretty(value).expect("plain data serialises");

@@ -304,7 +304,19 @@ impl OccupancyGrid {
     }
 
     fn write_to(&self, w: &mut impl Write, file: &str) -> Result<(), WriteErr> {
-        let mut entries: Vec<([i64; 3], f32)> = self.cells.iter().map(|(k, v)| (*k, *v)).collect();
+        // Entries as the file stores them (i32 keys: 16 bytes each, half an i64 key's padded 32), sorted;
+        // the default world's 76 M cells made this copy the generator's peak.
+        let mut entries: Vec<([i32; 3], f32)> = Vec::with_capacity(self.cells.len());
+        for (k, l) in &self.cells {
+            let small = k.map(|c| i32::try_from(c).ok());
+            let [Some(x), Some(y), Some(z)] = small else {
+                return Err(WriteErr::Grid(OccupancyError::KeyOutOfRange {
+                    file: file.to_string(),
+                    key: *k,
+                }));
+            };
+            entries.push(([x, y, z], *l));
+        }
         entries.sort_unstable_by_key(|e| e.0);
         let p = self.params;
         let mut h = Vec::with_capacity(HEADER_BYTES);
@@ -326,14 +338,7 @@ impl OccupancyGrid {
         w.write_all(&h).map_err(WriteErr::Io)?;
         let mut buf = Vec::with_capacity(ENTRY_BYTES * 4096);
         for (k, l) in entries {
-            let small = k.map(|c| i32::try_from(c).ok());
-            let [Some(x), Some(y), Some(z)] = small else {
-                return Err(WriteErr::Grid(OccupancyError::KeyOutOfRange {
-                    file: file.to_string(),
-                    key: k,
-                }));
-            };
-            for c in [x, y, z] {
+            for c in k {
                 buf.extend_from_slice(&c.to_le_bytes());
             }
             buf.extend_from_slice(&l.to_le_bytes());

@@ -398,10 +398,13 @@ pub async fn generate_recording(
     observed.mark_occupied(&gt.positions);
     o.write("gt/cloud.ply", &ply(&gt, "gt/cloud.ply")?)?;
     o.write("gt/mesh.ply", &mesh_ply(&world))?;
-    let obs = observed
-        .to_bytes()
+    // Streamed to its file: the grid (1.2 GB on the default world) is not copied into memory again,
+    // and what it no longer needs goes first.
+    drop((seen, gt));
+    observed
+        .save(&o.path("gt/observed.bin"))
         .map_err(|e| SynthError::Other(format!("gt/observed.bin: {e}")))?;
-    o.write("gt/observed.bin", &obs)?;
+    o.written("gt/observed.bin")?;
     progress(Progress {
         stage: "ground truth",
         done: 3,
