@@ -364,21 +364,18 @@ impl Sim3 {
         }
         let r = u * Matrix3::from_diagonal(&s) * v_t;
         let scale = if with_scale { d.dot(&s) / var_s } else { 1.0 };
-        let r = DMat3::from_cols_array(&[
-            r[(0, 0)],
-            r[(1, 0)],
-            r[(2, 0)],
-            r[(0, 1)],
-            r[(1, 1)],
-            r[(2, 1)],
-            r[(0, 2)],
-            r[(1, 2)],
-            r[(2, 2)],
-        ]);
-        let rot = DQuat::from_mat3(&r).normalize();
+        let rot = quat_from_matrix(&r);
         let trans = mu_d - scale * (rot * mu_s);
         Ok(Sim3 { scale, rot, trans })
     }
+}
+
+/// A proper rotation held as a nalgebra matrix (an SVD's product), as a unit quaternion.
+pub(crate) fn quat_from_matrix(r: &nalgebra::Matrix3<f64>) -> DQuat {
+    // Both store columns first.
+    let mut cols = [0.0; 9];
+    cols.copy_from_slice(r.as_slice());
+    DQuat::from_mat3(&DMat3::from_cols_array(&cols)).normalize()
 }
 
 impl Mul for Sim3 {

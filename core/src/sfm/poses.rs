@@ -896,20 +896,6 @@ fn weighted_alignment(a: &[Se3], b: &[Se3], fit: &Sim3) -> Option<Sim3> {
         let r = glam::DMat3::from_quat(q);
         Matrix3::from_column_slice(&r.to_cols_array())
     };
-    let to_quat = |r: Matrix3<f64>| {
-        glam::DQuat::from_mat3(&glam::DMat3::from_cols_array(&[
-            r[(0, 0)],
-            r[(1, 0)],
-            r[(2, 0)],
-            r[(0, 1)],
-            r[(1, 1)],
-            r[(2, 1)],
-            r[(0, 2)],
-            r[(1, 2)],
-            r[(2, 2)],
-        ]))
-        .normalize()
-    };
     // The rotation nearest a 3×3 sum (its polar factor, proper).
     let nearest = |h: Matrix3<f64>| -> Option<glam::DQuat> {
         if !h.iter().all(|x| x.is_finite()) {
@@ -921,7 +907,7 @@ fn weighted_alignment(a: &[Se3], b: &[Se3], fit: &Sim3) -> Option<Sim3> {
         if u.determinant() * v_t.determinant() < 0.0 {
             d[(2, 2)] = -1.0;
         }
-        Some(to_quat(u * d * v_t))
+        Some(crate::geometry::quat_from_matrix(&(u * d * v_t)))
     };
     let rel: Vec<glam::DQuat> = a
         .iter()
