@@ -50,8 +50,9 @@ enum Command {
     },
     /// Generate the built-in synthetic world as a dataset (images, lidar, ground truth).
     Synth {
-        /// `ci` (small, seconds), `micro` (the parity tests' 180x135 street) or `default` (720x540, 64
-        /// beams, 120 keyframes).
+        /// `ci` (small, seconds), `micro` (the parity tests' 180x135 street), `default` (720x540, 64
+        /// beams, 120 keyframes round a block) or `campus` (720x540, 1,027 keyframes over 21,900 m² with
+        /// three loops; cut it with --keyframes).
         #[arg(long, default_value = "ci")]
         preset: String,
         #[arg(long, default_value_t = 1)]
@@ -950,7 +951,7 @@ fn open_gpu() -> Result<Gpu> {
 
 fn preset_by_name(name: &str, seed: u64) -> Result<Preset> {
     Preset::by_name(name, seed)
-        .with_context(|| format!("unknown preset {name:?} (use `ci` or `default`)"))
+        .with_context(|| format!("unknown preset {name:?} (use {})", Preset::NAMES))
 }
 
 fn synth_with(

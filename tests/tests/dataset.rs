@@ -118,6 +118,47 @@ fn lidar_depth_agrees_with_ground_truth_depth() {
     assert!(median < 0.03, "median |lidar - GT| depth {median} m");
 }
 
+/// The campus (`Preset::campus`) goes through the same generator: a 3-keyframe prefix of its walk is a
+/// dataset whose lidar depth agrees with its exact depth as the town's does, whose grid has the
+/// campus's 0.2 m voxels, and whose manifest records the prefix of the whole walk.
+#[test]
+fn a_campus_prefix_is_a_dataset_like_the_towns() {
+    let tmp = tempfile::tempdir().unwrap();
+    let preset = Preset::campus(1).prefix(3).unwrap();
+    let ds = make(&preset, &tmp.path().join("campus")).unwrap();
+    let mut errs = Vec::new();
+    let mut labels = std::collections::BTreeSet::new();
+    for cam in ["cam_front", "cam_left", "cam_right"] {
+        for k in 0..3 {
+            let k = format!("{k:05}");
+            let (_, _, lidar) = read_png16(&ds.join(format!("lidar_depth/{cam}/{k}.png"))).unwrap();
+            let (_, _, gt) = read_png16(&ds.join(format!("gt/depth/{cam}/{k}.png"))).unwrap();
+            for i in 0..lidar.len() {
+                if lidar[i] != 0 && lidar[i] != SKY_DEPTH && gt[i] != 0 {
+                    errs.push((lidar[i] as f64 - gt[i] as f64).abs() / 256.0);
+                }
+            }
+            let (_, _, sem) = read_gray8(&ds.join(format!("gt/semantic/{cam}/{k}.png"))).unwrap();
+            labels.extend(sem);
+        }
+    }
+    errs.sort_by(f64::total_cmp);
+    assert!(errs.len() > 10_000, "{} lidar depth pixels", errs.len());
+    let median = errs[errs.len() / 2];
+    assert!(median < 0.03, "median |lidar - GT| depth {median} m");
+    for l in [Label::Road, Label::Sidewalk, Label::Facade, Label::Sky] {
+        assert!(labels.contains(&(l as u8)), "no {l:?} in view: {labels:?}");
+    }
+    let grid =
+        silvr_core::eval::occupancy::OccupancyGrid::load(&ds.join("gt/observed.bin")).unwrap();
+    assert_eq!(grid.voxel_size(), 0.2);
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(ds.join("manifest.json")).unwrap()).unwrap();
+    assert_eq!(manifest["preset"]["name"], "campus");
+    assert_eq!(manifest["preset"]["keyframes"], 3);
+    assert_eq!(manifest["preset"]["walk_keyframes"], 1027);
+}
+
 #[test]
 fn same_seed_gives_identical_bytes_and_another_seed_does_not() {
     let tmp = tempfile::tempdir().unwrap();

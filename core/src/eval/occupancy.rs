@@ -12,10 +12,12 @@
 //! snapped to voxel centres and deduplicated, every voxel is updated at most once per scan, and a voxel
 //! that is both traversed and hit in the same scan counts as occupied.
 
-use crate::pointcloud::{voxel_key, write_atomic, PointCloud, VoxelMap};
+use crate::pointcloud::{voxel_key, write_atomic, PointCloud, VoxelHasher, VoxelMap};
 use glam::DVec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::hash::{BuildHasher, BuildHasherDefault};
 use std::io::Write;
 use std::path::Path;
 use thiserror::Error;
@@ -114,7 +116,151 @@ pub struct OccupancyGrid {
     min: f32,
     max: f32,
     threshold: f32,
-    cells: VoxelMap<f32>,
+    cells: Cells,
+}
+
+/// The known voxels' log-odds, split by key hash into shards, so that a scan's millions of updates run
+/// on every core (each shard is one thread's) and the tables grow a 64th at a time: one table of the
+/// default world's 76 M cells doubled in one step, holding both copies at once. Keys are packed into 64
+/// bits ([`pack`]: ±2^21 voxels across, ±2^19 up, ±210 km and ±52 km at 0.1 m), 16 B an entry instead
+/// of 32; a key beyond that range (garbage coordinates) lives in `spill`, so every finite point still
+/// has its voxel.
+#[derive(Clone, Debug)]
+struct Cells {
+    shards: Vec<PackedMap>,
+    spill: VoxelMap<f32>,
+}
+
+type PackedMap = HashMap<u64, f32, BuildHasherDefault<VoxelHasher>>;
+
+const SHARDS: usize = 64;
+const XY_BITS: u32 = 22;
+const Z_BITS: u32 = 20;
+
+/// A voxel key as 64 bits (x and y biased into 22 bits each, z into 20; x highest, so packed keys sort
+/// as the keys do), or `None` beyond that range.
+fn pack(k: &[i64; 3]) -> Option<u64> {
+    let field = |v: i64, bits: u32| {
+        let b = v.checked_add(1 << (bits - 1))?;
+        (0..1i64 << bits).contains(&b).then_some(b as u64)
+    };
+    Some(
+        field(k[0], XY_BITS)? << (XY_BITS + Z_BITS)
+            | field(k[1], XY_BITS)? << Z_BITS
+            | field(k[2], Z_BITS)?,
+    )
+}
+
+fn unpack(p: u64) -> [i64; 3] {
+    let field = |v: u64, bits: u32| (v & ((1 << bits) - 1)) as i64 - (1 << (bits - 1));
+    [
+        field(p >> (XY_BITS + Z_BITS), XY_BITS),
+        field(p >> Z_BITS, XY_BITS),
+        field(p, Z_BITS),
+    ]
+}
+
+impl Cells {
+    fn new() -> Self {
+        Self {
+            shards: (0..SHARDS).map(|_| PackedMap::default()).collect(),
+            spill: VoxelMap::default(),
+        }
+    }
+
+    /// The shard of a packed key: bits 40..46 of its hash, which neither a table's bucket index (the low
+    /// bits) nor its control tag (the top 7) uses, so each shard's table still sees well-spread hashes.
+    fn shard(p: u64) -> usize {
+        let h = BuildHasherDefault::<VoxelHasher>::default().hash_one(p);
+        ((h >> 40) as usize) % SHARDS
+    }
+
+    fn len(&self) -> usize {
+        self.shards.iter().map(|m| m.len()).sum::<usize>() + self.spill.len()
+    }
+
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    fn get(&self, k: &[i64; 3]) -> Option<&f32> {
+        match pack(k) {
+            Some(p) => self.shards[Self::shard(p)].get(&p),
+            None => self.spill.get(k),
+        }
+    }
+
+    fn contains_key(&self, k: &[i64; 3]) -> bool {
+        self.get(k).is_some()
+    }
+
+    fn insert(&mut self, k: [i64; 3], v: f32) -> Option<f32> {
+        match pack(&k) {
+            Some(p) => self.shards[Self::shard(p)].insert(p, v),
+            None => self.spill.insert(k, v),
+        }
+    }
+
+    /// A key's log-odds, inserted at 0 when new.
+    fn entry(&mut self, k: [i64; 3]) -> &mut f32 {
+        match pack(&k) {
+            Some(p) => self.shards[Self::shard(p)].entry(p).or_insert(0.0),
+            None => self.spill.entry(k).or_insert(0.0),
+        }
+    }
+
+    #[cfg(test)]
+    fn iter(&self) -> impl Iterator<Item = ([i64; 3], f32)> + '_ {
+        self.shards
+            .iter()
+            .flat_map(|m| m.iter().map(|(p, l)| (unpack(*p), *l)))
+            .chain(self.spill.iter().map(|(k, l)| (*k, *l)))
+    }
+
+    fn values(&self) -> impl Iterator<Item = &f32> {
+        self.shards
+            .iter()
+            .flat_map(|m| m.values())
+            .chain(self.spill.values())
+    }
+
+    /// Applies `f` to the log-odds of every key in `keys` (a new voxel starts at 0), in parallel by
+    /// shard. Each key's result is independent of the others', so the order does not matter.
+    fn apply(&mut self, keys: &[[i64; 3]], f: impl Fn(&[i64; 3], &mut f32) + Sync) {
+        let chunk = keys
+            .len()
+            .div_ceil(rayon::current_num_threads().max(1))
+            .max(4096);
+        // Per chunk of keys: (packed key, index in `keys`) by shard, and the spilled keys' indices.
+        type Part = (Vec<Vec<(u64, usize)>>, Vec<usize>);
+        let parts: Vec<Part> = keys
+            .par_chunks(chunk)
+            .enumerate()
+            .map(|(c, part)| {
+                let (mut by_shard, mut spilled) = (vec![Vec::new(); SHARDS], Vec::new());
+                for (i, k) in part.iter().enumerate() {
+                    let at = c * chunk + i;
+                    match pack(k) {
+                        Some(p) => by_shard[Self::shard(p)].push((p, at)),
+                        None => spilled.push(at),
+                    }
+                }
+                (by_shard, spilled)
+            })
+            .collect();
+        self.shards.par_iter_mut().enumerate().for_each(|(s, map)| {
+            for (by_shard, _) in &parts {
+                for &(p, at) in &by_shard[s] {
+                    f(&keys[at], map.entry(p).or_insert(0.0));
+                }
+            }
+        });
+        for (_, spilled) in &parts {
+            for &at in spilled {
+                f(&keys[at], self.spill.entry(keys[at]).or_insert(0.0));
+            }
+        }
+    }
 }
 
 /// Rays longer than this many voxel steps are ignored (a 0.1 m grid allows 1000 km), so garbage
@@ -141,7 +287,7 @@ impl OccupancyGrid {
             min: logit(params.clamp_min),
             max: logit(params.clamp_max),
             threshold: logit(params.occupancy_threshold),
-            cells: VoxelMap::default(),
+            cells: Cells::new(),
         })
     }
 
@@ -173,7 +319,7 @@ impl OccupancyGrid {
     }
 
     fn update(&mut self, k: [i64; 3], delta: f32) {
-        let l = self.cells.entry(k).or_insert(0.0);
+        let l = self.cells.entry(k);
         *l = (*l + delta).clamp(self.min, self.max);
     }
 
@@ -182,10 +328,12 @@ impl OccupancyGrid {
     /// as in Spires, where the grid is built from the very scans that make the GT cloud.
     pub fn mark_occupied(&mut self, points: &[DVec3]) {
         let max = self.max;
-        for p in points.iter().filter(|p| p.is_finite()) {
-            let k = voxel_key(*p, self.inv_voxel);
-            self.cells.insert(k, max);
-        }
+        let keys: Vec<[i64; 3]> = points
+            .par_iter()
+            .filter(|p| p.is_finite())
+            .map(|p| voxel_key(*p, self.inv_voxel))
+            .collect();
+        self.cells.apply(&keys, |_, l| *l = max);
     }
 
     /// Casts one ray: voxels from the origin's up to (not including) the endpoint's are updated as free,
@@ -237,14 +385,15 @@ impl OccupancyGrid {
                 all
             })
             .reduce(Vec::new, merge_sorted);
-        for k in free {
-            if ends.binary_search(&k).is_err() {
-                self.update(k, self.miss);
+        let (lo, hi) = (self.min, self.max);
+        let (hit, miss) = (self.hit, self.miss);
+        self.cells.apply(&free, |k, l| {
+            if ends.binary_search(k).is_err() {
+                *l = (*l + miss).clamp(lo, hi);
             }
-        }
-        for &k in &ends {
-            self.update(k, self.hit);
-        }
+        });
+        self.cells
+            .apply(&ends, |_, l| *l = (*l + hit).clamp(lo, hi));
         ends.len()
     }
 
@@ -304,20 +453,48 @@ impl OccupancyGrid {
     }
 
     fn write_to(&self, w: &mut impl Write, file: &str) -> Result<(), WriteErr> {
-        // Entries as the file stores them (i32 keys: 16 bytes each, half an i64 key's padded 32), sorted;
-        // the default world's 76 M cells made this copy the generator's peak.
-        let mut entries: Vec<([i32; 3], f32)> = Vec::with_capacity(self.cells.len());
-        for (k, l) in &self.cells {
-            let small = k.map(|c| i32::try_from(c).ok());
-            let [Some(x), Some(y), Some(z)] = small else {
+        // The entries in key order. The packed keys sort as the keys do, so the order is the packed
+        // keys' alone (8 B an entry; the default world's 76 M cells made a sorted copy of whole entries the
+        // generator's peak), each log-odds looked up as it is written. Spilled keys (beyond the packed
+        // range) are merged in; every key must fit the file's i32.
+        let mut packed: Vec<u64> = self
+            .cells
+            .shards
+            .iter()
+            .flat_map(|m| m.keys().copied())
+            .collect();
+        packed.par_sort_unstable();
+        let mut spilled: Vec<([i64; 3], f32)> =
+            self.cells.spill.iter().map(|(k, l)| (*k, *l)).collect();
+        spilled.sort_unstable_by_key(|e| e.0);
+        let small = |k: [i64; 3]| {
+            let [Some(x), Some(y), Some(z)] = k.map(|c| i32::try_from(c).ok()) else {
                 return Err(WriteErr::Grid(OccupancyError::KeyOutOfRange {
                     file: file.to_string(),
-                    key: *k,
+                    key: k,
                 }));
             };
-            entries.push(([x, y, z], *l));
+            Ok([x, y, z])
+        };
+        for (k, _) in &spilled {
+            small(*k)?;
         }
-        entries.sort_unstable_by_key(|e| e.0);
+        let count = self.cells.len();
+        // Log-odds looked up a million keys at a time, in parallel, and merged with the spilled keys.
+        let mut spilled = spilled.into_iter().peekable();
+        let entries = packed.chunks(1 << 20).flat_map(move |chunk| {
+            let looked: Vec<([i64; 3], f32)> = chunk
+                .par_iter()
+                .map(|&p| (unpack(p), self.cells.shards[Cells::shard(p)][&p]))
+                .collect();
+            looked
+        });
+        let mut entries = entries.peekable();
+        let entries = std::iter::from_fn(move || match (entries.peek(), spilled.peek()) {
+            (Some(a), Some(b)) if b.0 < a.0 => spilled.next(),
+            (Some(_), _) => entries.next(),
+            (None, _) => spilled.next(),
+        });
         let p = self.params;
         let mut h = Vec::with_capacity(HEADER_BYTES);
         h.extend_from_slice(MAGIC);
@@ -333,12 +510,12 @@ impl OccupancyGrid {
         ] {
             h.extend_from_slice(&v.to_le_bytes());
         }
-        h.extend_from_slice(&(entries.len() as u64).to_le_bytes());
+        h.extend_from_slice(&(count as u64).to_le_bytes());
         debug_assert_eq!(h.len(), HEADER_BYTES);
         w.write_all(&h).map_err(WriteErr::Io)?;
         let mut buf = Vec::with_capacity(ENTRY_BYTES * 4096);
         for (k, l) in entries {
-            for c in k {
+            for c in small(k)? {
                 buf.extend_from_slice(&c.to_le_bytes());
             }
             buf.extend_from_slice(&l.to_le_bytes());
@@ -444,7 +621,6 @@ impl OccupancyGrid {
                 }
             });
         }
-        grid.cells.reserve(count as usize);
         for (i, e) in bytes[HEADER_BYTES..].chunks_exact(ENTRY_BYTES).enumerate() {
             let c = |o: usize| i32::from_le_bytes(e[o..o + 4].try_into().unwrap_or([0; 4])) as i64;
             let l = f32::from_le_bytes(e[12..16].try_into().unwrap_or([0; 4]));
@@ -779,6 +955,58 @@ mod tests {
         );
     }
 
+    /// Keys inside the packed range and beyond it (the spill map) are all kept, and the file lists them
+    /// in key order whichever map holds them.
+    #[test]
+    fn keys_beyond_the_packed_range_are_kept_and_written_in_order() {
+        let edge = (1i64 << 21) - 1;
+        let keys = [
+            [0, 0, 0],
+            [-1, -1, -1],
+            [edge, -edge - 1, (1 << 19) - 1],
+            [edge + 1, 0, 0],
+            [-edge - 2, 5, 5],
+            [3, 4, 1 << 19],
+            [3, 4, -(1 << 19) - 1],
+            [1 << 30, -(1 << 30), 7],
+        ];
+        for k in &keys[..3] {
+            assert_eq!(pack(k).map(unpack), Some(*k), "{k:?} packs");
+        }
+        for k in &keys[3..] {
+            assert_eq!(pack(k), None, "{k:?} is beyond the packed range");
+        }
+        let mut g = OccupancyGrid::new(0.1).unwrap();
+        for (i, k) in keys.iter().enumerate() {
+            g.cells.insert(*k, i as f32);
+        }
+        assert_eq!(g.len(), keys.len());
+        assert!(!g.cells.spill.is_empty());
+        for (i, k) in keys.iter().enumerate() {
+            assert_eq!(g.log_odds(*k), Some(i as f32));
+        }
+        let bytes = g.to_bytes().unwrap();
+        let read: Vec<[i32; 3]> = bytes[HEADER_BYTES..]
+            .chunks_exact(ENTRY_BYTES)
+            .map(|e| {
+                std::array::from_fn(|c| i32::from_le_bytes(e[4 * c..4 * c + 4].try_into().unwrap()))
+            })
+            .collect();
+        let mut want: Vec<[i32; 3]> = keys.iter().map(|k| k.map(|c| c as i32)).collect();
+        want.sort_unstable();
+        assert_eq!(read, want);
+        let h = OccupancyGrid::from_bytes(&bytes, "mem").unwrap();
+        for (i, k) in keys.iter().enumerate() {
+            assert_eq!(h.log_odds(*k), Some(i as f32));
+        }
+        // A key beyond the file's i32 is an error naming it, not a wrapped coordinate.
+        g.cells.insert([1 << 40, 0, 0], 1.0);
+        assert!(matches!(
+            g.to_bytes(),
+            Err(OccupancyError::KeyOutOfRange { key, .. }) if key == [1 << 40, 0, 0]
+        ));
+    }
+
     #[test]
     fn save_load_round_trip_and_corruption() {
         let dir = std::env::temp_dir().join(format!("silvr-occ-{}", std::process::id()));
@@ -794,8 +1022,8 @@ mod tests {
         let h = OccupancyGrid::load(&path).unwrap();
         assert_eq!(h.len(), g.len());
         assert_eq!(h.voxel_size(), 0.1);
-        for (k, l) in &g.cells {
-            assert_eq!(h.log_odds(*k), Some(*l));
+        for (k, l) in g.cells.iter() {
+            assert_eq!(h.log_odds(k), Some(l));
         }
         let bytes = std::fs::read(&path).unwrap();
         assert_eq!(bytes, g.to_bytes().unwrap());

@@ -11,7 +11,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use super::raycast::{Scene, Shape, GROUND};
-use super::sensors::{render_camera, simulate_sweep, LidarNoise, RenderOptions, Sweep};
+use super::sensors::{render_rays, simulate_sweep, CameraRays, LidarNoise, RenderOptions, Sweep};
 use super::world::{Label, World};
 use super::{prior, Preset};
 use crate::dataset::{self, png_gray16, png_gray8, png_rgb, DatasetError, DatasetWriter, NsFrame};
@@ -23,7 +23,9 @@ use crate::pointcloud::{write_ply_bytes, PointCloud, VoxelHasher};
 use crate::rig::RigCamera;
 
 /// Generator version, recorded in the manifest; bump when output bytes change for the same seed.
-pub const GENERATOR_VERSION: &str = "silvr-synth 2";
+/// 3: a building's downward faces (the campus's passages and arcades overhead) are coloured as its roof, not
+/// as a facade, which changes the town's `gt/mesh.ply` (faces no sensor sees) and nothing else.
+pub const GENERATOR_VERSION: &str = "silvr-synth 3";
 
 /// Why generation failed.
 #[derive(Debug, thiserror::Error)]
@@ -172,6 +174,12 @@ pub async fn generate_recording(
     let mut cam_poses: Vec<Vec<Se3>> = vec![Vec::new(); cams.len()];
     let mut image_times = Vec::new();
     let total = preset.keyframes;
+    let rays: Vec<CameraRays> = preset
+        .rig
+        .cameras
+        .iter()
+        .map(|c| CameraRays::new(&c.model, preset.supersample))
+        .collect();
 
     for k in 0..preset.keyframes {
         progress(Progress {
@@ -253,9 +261,9 @@ pub async fn generate_recording(
             cam_poses[ci].push(t_world_cam);
             let model = &cam.model;
             let (w, h) = (model.width, model.height);
-            let frame = render_camera(
+            let frame = render_rays(
                 &world,
-                model,
+                &rays[ci],
                 &t_world_cam,
                 RenderOptions {
                     supersample: preset.supersample,
@@ -298,7 +306,6 @@ pub async fn generate_recording(
             )?;
             // What the camera observed: every pixel's surface; free space along every 4th pixel's ray (in x and y).
             // Rows in parallel; each row's keys deduplicated before they meet the shared set.
-            let max_angle = model.valid_angle();
             let rows: Vec<(Vec<[i64; 3]>, Vec<DVec3>)> = (0..h)
                 .into_par_iter()
                 .map(|y| {
@@ -308,9 +315,7 @@ pub async fn generate_recording(
                         if r <= 0.0 {
                             continue;
                         }
-                        let Some(dir) =
-                            model.unproject_within(DVec2::new(x as f64, y as f64), max_angle)
-                        else {
+                        let Some(dir) = rays[ci].centre(x, y) else {
                             continue;
                         };
                         let p = t_world_cam.transform_point(dir * r);
@@ -682,7 +687,7 @@ pub fn mesh_ply(world: &World) -> Vec<u8> {
             ));
         };
     // Ground: one big quad around everything.
-    let ext = world.params.tower_distance + 50.0;
+    let ext = world.ground_half_extent();
     let g = |x: f64, y: f64| DVec3::new(x, y, 0.0);
     add_tri(
         &mut verts,

@@ -212,6 +212,71 @@ pub struct RenderOptions {
     pub seed: u64,
 }
 
+/// A camera's rays in its own frame, for every pixel centre and every colour sub-sample: the lens
+/// model's inverse is iterative (fisheye), and the same for every frame, so a generator unprojects once.
+#[derive(Clone, Debug)]
+pub struct CameraRays {
+    width: u32,
+    height: u32,
+    supersample: u32,
+    /// Per pixel (row-major): the centre's ray, `None` outside the lens's valid angle.
+    centre: Vec<Option<DVec3>>,
+    /// Per pixel, `supersample²` sub-sample rays in row-major stratum order.
+    sub: Vec<Option<DVec3>>,
+}
+
+impl CameraRays {
+    pub fn new(camera: &CameraModel, supersample: u32) -> Self {
+        let (w, h) = (camera.width, camera.height);
+        let ss = supersample.max(1);
+        let max_angle = camera.valid_angle();
+        let rows: Vec<_> = (0..h)
+            .into_par_iter()
+            .map(|y| {
+                let mut centre = Vec::with_capacity(w as usize);
+                let mut sub = Vec::with_capacity((w * ss * ss) as usize);
+                for x in 0..w {
+                    let c = DVec2::new(x as f64, y as f64);
+                    centre.push(camera.unproject_within(c, max_angle));
+                    for sy in 0..ss {
+                        for sx in 0..ss {
+                            let off = DVec2::new(
+                                (sx as f64 + 0.5) / ss as f64 - 0.5,
+                                (sy as f64 + 0.5) / ss as f64 - 0.5,
+                            );
+                            sub.push(camera.unproject_within(c + off, max_angle));
+                        }
+                    }
+                }
+                (centre, sub)
+            })
+            .collect();
+        let (mut centre, mut sub) = (Vec::new(), Vec::new());
+        for (c, s) in rows {
+            centre.extend(c);
+            sub.extend(s);
+        }
+        CameraRays {
+            width: w,
+            height: h,
+            supersample: ss,
+            centre,
+            sub,
+        }
+    }
+
+    /// The ray through pixel (x, y)'s centre, in the camera frame.
+    pub fn centre(&self, x: u32, y: u32) -> Option<DVec3> {
+        self.centre[(y * self.width + x) as usize]
+    }
+
+    fn sub(&self, x: u32, y: u32) -> &[Option<DVec3>] {
+        let n = (self.supersample * self.supersample) as usize;
+        let i = (y * self.width + x) as usize * n;
+        &self.sub[i..i + n]
+    }
+}
+
 /// Renders one camera at pose `t_world_cam` (OpenCV camera axes).
 pub fn render_camera(
     world: &World,
@@ -219,9 +284,23 @@ pub fn render_camera(
     t_world_cam: &Se3,
     opts: RenderOptions,
 ) -> CameraFrame {
-    let (w, h) = (camera.width, camera.height);
-    let ss = opts.supersample.max(1);
-    let max_angle = camera.valid_angle();
+    render_rays(
+        world,
+        &CameraRays::new(camera, opts.supersample),
+        t_world_cam,
+        opts,
+    )
+}
+
+/// [`render_camera`] with the camera's rays unprojected beforehand ([`CameraRays`]); `opts.supersample`
+/// is the rays'.
+pub fn render_rays(
+    world: &World,
+    rays: &CameraRays,
+    t_world_cam: &Se3,
+    opts: RenderOptions,
+) -> CameraFrame {
+    let (w, h) = (rays.width, rays.height);
     let rows: Vec<_> = (0..h)
         .into_par_iter()
         .map(|y| {
@@ -234,8 +313,7 @@ pub fn render_camera(
             let mut label = Vec::with_capacity(w as usize);
             for x in 0..w {
                 // Ground truth along the pixel-centre ray.
-                let centre = DVec2::new(x as f64, y as f64);
-                match camera.unproject_within(centre, max_angle) {
+                match rays.centre(x, y) {
                     Some(dir_cam) => {
                         let d = t_world_cam.transform_vector(dir_cam);
                         match world.scene.cast(t_world_cam.trans, d, 1.0e4) {
@@ -261,22 +339,13 @@ pub fn render_camera(
                 // Colour: box-filtered over ss x ss stratified sub-samples.
                 let mut acc = Vec3::ZERO;
                 let mut n = 0.0f32;
-                for sy in 0..ss {
-                    for sx in 0..ss {
-                        let off = DVec2::new(
-                            (sx as f64 + 0.5) / ss as f64 - 0.5,
-                            (sy as f64 + 0.5) / ss as f64 - 0.5,
-                        );
-                        let Some(dir_cam) = camera.unproject_within(centre + off, max_angle) else {
-                            continue;
-                        };
-                        let d = t_world_cam.transform_vector(dir_cam);
-                        acc += match world.scene.cast(t_world_cam.trans, d, 1.0e4) {
-                            Some(hit) => world.shade(&hit),
-                            None => sky(d),
-                        };
-                        n += 1.0;
-                    }
+                for dir_cam in rays.sub(x, y).iter().flatten() {
+                    let d = t_world_cam.transform_vector(*dir_cam);
+                    acc += match world.scene.cast(t_world_cam.trans, d, 1.0e4) {
+                        Some(hit) => world.shade(&hit),
+                        None => sky(d),
+                    };
+                    n += 1.0;
                 }
                 let c = if n > 0.0 { acc / n } else { Vec3::ZERO };
                 let mut px = [0u8; 3];

@@ -11,6 +11,8 @@ use serde::{Deserialize, Serialize};
 
 use super::raycast::{Hit, Primitive, Scene, Shape};
 
+mod campus;
+
 /// Semantic classes written to `gt/semantic/*.png` (the pixel value is the discriminant).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[repr(u8)]
@@ -64,11 +66,14 @@ pub enum Material {
     Ground,
     /// Raised sidewalk slabs: concrete with a faint 1 m tile grid; kerb faces plain.
     Sidewalk,
-    /// A building: textured facade with a window grid (or, if `white`, a uniform white wall) and a flat roof.
+    /// A building: textured facade with a window grid (or, if `white`, a uniform white wall; if `glass`, a
+    /// uniform dark curtain wall) and a flat roof.
     Building {
         base: [f32; 3],
         brick: bool,
         white: bool,
+        #[serde(default)]
+        glass: bool,
     },
     /// Pitched roof planes.
     Roof {
@@ -96,6 +101,64 @@ pub struct WorldParams {
     pub n_trees: usize,
     pub n_poles: usize,
     pub n_cars: usize,
+    /// Which world: the town around one block (the default), or the campus of many blocks. Not written
+    /// for the town, so the town's manifests are what they were before the campus existed.
+    #[serde(default, skip_serializing_if = "Layout::is_town")]
+    pub layout: Layout,
+}
+
+/// The world's plan.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub enum Layout {
+    /// The ring road around one central block (`ci`, `micro`, `default`).
+    #[default]
+    Town,
+    /// A grid of blocks, each a courtyard building, a row of houses, an arcade or a glass tower, ringed
+    /// by buildings outside the perimeter streets (`campus`).
+    Campus(CampusParams),
+}
+
+/// The campus's street grid: `blocks[0] x blocks[1]` blocks of `block_size` (sidewalk included)
+/// between streets of the world's `road_width`, centred on the origin.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CampusParams {
+    pub blocks: [usize; 2],
+    pub block_size: [f64; 2],
+}
+
+impl Layout {
+    pub fn is_town(&self) -> bool {
+        matches!(self, Layout::Town)
+    }
+}
+
+impl Default for CampusParams {
+    fn default() -> Self {
+        Self {
+            blocks: [4, 3],
+            block_size: [40.0, 30.0],
+        }
+    }
+}
+
+impl CampusParams {
+    /// Distance between neighbouring streets' centre lines, per axis.
+    pub fn pitch(&self, road_width: f64) -> DVec2 {
+        DVec2::new(
+            self.block_size[0] + road_width,
+            self.block_size[1] + road_width,
+        )
+    }
+
+    /// Centre of the crossing of vertical street `i` (0..=blocks[0], west to east) and horizontal street
+    /// `j` (0..=blocks[1], south to north).
+    pub fn crossing(&self, road_width: f64, i: usize, j: usize) -> DVec2 {
+        let p = self.pitch(road_width);
+        DVec2::new(
+            (i as f64 - 0.5 * self.blocks[0] as f64) * p.x,
+            (j as f64 - 0.5 * self.blocks[1] as f64) * p.y,
+        )
+    }
 }
 
 impl Default for WorldParams {
@@ -109,6 +172,7 @@ impl Default for WorldParams {
             n_trees: 6,
             n_poles: 12,
             n_cars: 4,
+            layout: Layout::Town,
         }
     }
 }
@@ -133,6 +197,15 @@ impl World {
     /// Builds the town for `seed`. The structure is fixed (so presets and tests can rely on where the road,
     /// the white wall and the tower are); sizes, heights, colours and street furniture vary with the seed.
     pub fn generate(params: WorldParams, seed: u64) -> World {
+        if let Layout::Campus(c) = &params.layout {
+            let (prims, materials) = campus::build(&params, c, seed);
+            return World {
+                params,
+                seed,
+                scene: Scene::new(prims, 0),
+                materials,
+            };
+        }
         let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed ^ 0x5117_7e12);
         let mut prims: Vec<Primitive> = Vec::new();
         let mut materials = vec![Material::Ground, Material::Sidewalk];
@@ -180,7 +253,12 @@ impl World {
                             pitched: bool| {
             let base = palette[rng.random_range(0..palette.len())];
             let brick = rng.random_bool(0.5);
-            materials.push(Material::Building { base, brick, white });
+            materials.push(Material::Building {
+                base,
+                brick,
+                white,
+                glass: false,
+            });
             let m = (materials.len() - 1) as u16;
             prims.push(Primitive {
                 shape: cuboid(min.extend(0.0), max.extend(height)),
@@ -468,13 +546,21 @@ impl World {
                         + 0.01 * (value_noise2(p.x * 3.0, p.y * 3.0, s + 1) * 2.0 - 1.0));
                 Vec3::splat(v as f32)
             }
-            Material::Building { base, brick, white } => {
-                if n.z > 0.5 {
+            Material::Building {
+                base,
+                brick,
+                white,
+                glass,
+            } => {
+                if n.z.abs() > 0.5 {
                     let v = 0.25 * (1.0 + 0.05 * (value_noise2(p.x, p.y, s + 2) * 2.0 - 1.0));
                     return Vec3::splat(v as f32);
                 }
                 if white {
                     return Vec3::splat(0.8);
+                }
+                if glass {
+                    return Vec3::new(0.16, 0.20, 0.25);
                 }
                 let u = if n.x.abs() > 0.5 { p.y } else { p.x };
                 facade(u, p.z, Vec3::from(base), brick, s)
@@ -520,15 +606,43 @@ impl World {
         to_display(a * (AMBIENT + (1.0 - AMBIENT) * lambert))
     }
 
-    /// Lane markings on the ring road: dashed centre line (3 m on, 6 m off) and solid edge lines,
-    /// as a coverage weight in [0, 1] with 2 cm of analytic anti-aliasing.
+    /// Lane markings: dashed centre lines (3 m on, 6 m off) and solid edge lines, as a coverage weight in
+    /// [0, 1] with 2 cm of analytic anti-aliasing. Town: the ring road; campus: every street, none on the
+    /// crossings.
     fn lane_marking(&self, q: DVec2) -> f64 {
-        let (bx, by) = (self.params.block_half[0], self.params.block_half[1]);
         let rw = self.params.road_width;
-        // Signed distance outwards from the block boundary, and an along-road coordinate.
-        let dx = q.x.abs() - bx;
-        let dy = q.y.abs() - by;
-        let (d, along) = if dy >= dx { (dy, q.x) } else { (dx, q.y) };
+        let (d, along) = match &self.params.layout {
+            Layout::Town => {
+                let (bx, by) = (self.params.block_half[0], self.params.block_half[1]);
+                // Signed distance outwards from the block boundary, and an along-road coordinate.
+                let dx = q.x.abs() - bx;
+                let dy = q.y.abs() - by;
+                if dy >= dx {
+                    (dy, q.x)
+                } else {
+                    (dx, q.y)
+                }
+            }
+            Layout::Campus(c) => {
+                let p = c.pitch(rw);
+                let lo = c.crossing(rw, 0, 0);
+                let hi = c.crossing(rw, c.blocks[0], c.blocks[1]);
+                let off = |v: f64, o: f64, pitch: f64, n: usize| {
+                    let i = ((v - o) / pitch).round().clamp(0.0, n as f64);
+                    v - (o + i * pitch)
+                };
+                let ox = off(q.x, lo.x, p.x, c.blocks[0]);
+                let oy = off(q.y, lo.y, p.y, c.blocks[1]);
+                let inside = |v: f64, a: f64, b: f64| v > a - 0.5 * rw && v < b + 0.5 * rw;
+                let on_x = ox.abs() < 0.5 * rw && inside(q.y, lo.y, hi.y);
+                let on_y = oy.abs() < 0.5 * rw && inside(q.x, lo.x, hi.x);
+                match (on_x, on_y) {
+                    (true, false) => (ox + 0.5 * rw, q.y),
+                    (false, true) => (oy + 0.5 * rw, q.x),
+                    _ => return 0.0,
+                }
+            }
+        };
         if d < 0.0 || d > rw {
             return 0.0;
         }
@@ -543,6 +657,17 @@ impl World {
             };
         let edges = band(0.3, 0.05).max(band(rw - 0.3, 0.05));
         centre.max(edges)
+    }
+
+    /// Half the side of the ground square the mesh export draws (everything any sensor can see).
+    pub fn ground_half_extent(&self) -> f64 {
+        match &self.params.layout {
+            Layout::Town => self.params.tower_distance + 50.0,
+            Layout::Campus(c) => {
+                let hi = c.crossing(self.params.road_width, c.blocks[0], c.blocks[1]);
+                hi.x.max(hi.y) + 80.0
+            }
+        }
     }
 }
 
@@ -710,5 +835,104 @@ mod tests {
         let spread = road.iter().cloned().fold(f32::MIN, f32::max)
             - road.iter().cloned().fold(f32::MAX, f32::min);
         assert!(spread < 0.02, "asphalt spread {spread}");
+    }
+}
+
+#[cfg(test)]
+mod campus_tests {
+    use super::*;
+
+    fn campus() -> World {
+        let params = WorldParams {
+            road_width: 8.0,
+            layout: Layout::Campus(CampusParams::default()),
+            ..WorldParams::default()
+        };
+        World::generate(params, 1)
+    }
+
+    #[test]
+    fn every_block_kind_is_built_and_the_streets_are_clear() {
+        let w = campus();
+        let Layout::Campus(c) = w.params.layout.clone() else {
+            unreachable!()
+        };
+        let kinds = campus::block_kinds(&c, 1);
+        for k in [
+            campus::BlockKind::Courtyard,
+            campus::BlockKind::Row,
+            campus::BlockKind::Arcade,
+            campus::BlockKind::Tower,
+        ] {
+            assert!(kinds.iter().filter(|&&x| x == k).count() >= 3, "{k:?}");
+        }
+        // Along every street's centre line at eye height, nothing within a metre: the walk is free.
+        let rw = w.params.road_width;
+        let [nx, ny] = c.blocks;
+        for i in 0..=nx {
+            for j in 0..=ny {
+                let o = c.crossing(rw, i, j).extend(1.6);
+                for d in [DVec3::X, -DVec3::X, DVec3::Y, -DVec3::Y] {
+                    if let Some(h) = w.scene.cast(o, d, 100.0) {
+                        assert!(h.t > 3.9, "crossing ({i},{j}) blocked at {} m", h.t);
+                    }
+                }
+            }
+        }
+        // Looking north across each street at mid-block, most blocks show a textured facade.
+        let mut labels = std::collections::BTreeMap::new();
+        for j in 0..ny {
+            for i in 0..nx {
+                let o = (c.crossing(rw, i, j) + DVec2::new(0.5 * c.pitch(rw).x, 0.0)).extend(6.0);
+                if let Some(h) = w.scene.cast(o, DVec3::Y, 100.0) {
+                    *labels.entry(w.label(&h).name()).or_insert(0) += 1;
+                }
+            }
+        }
+        assert!(labels.get("facade").is_some_and(|&n| n >= 4), "{labels:?}");
+    }
+
+    #[test]
+    fn a_courtyard_opens_to_the_street_through_its_passage_and_glass_is_uniform() {
+        let w = campus();
+        let Layout::Campus(c) = w.params.layout.clone() else {
+            unreachable!()
+        };
+        let rw = w.params.road_width;
+        let kinds = campus::block_kinds(&c, 1);
+        let mut found = (false, false);
+        for (b, kind) in kinds.iter().enumerate() {
+            let (bi, bj) = (b % c.blocks[0], b / c.blocks[0]);
+            let south = c.crossing(rw, bi, bj);
+            let mx = south.x + 0.5 * c.pitch(rw).x;
+            // From the middle of the block's south street, looking north at 2 m height.
+            let o = DVec3::new(mx, south.y, 2.0);
+            let h = w
+                .scene
+                .cast(o, DVec3::Y, 200.0)
+                .expect("a block faces the street");
+            match kind {
+                campus::BlockKind::Courtyard => {
+                    // Through the passage and across the yard to the north wing: past the south wing.
+                    let wing = 0.5 * rw + w.params.sidewalk_width + 8.0;
+                    assert!(h.t > wing + 5.0, "passage shut: hit at {} m", h.t);
+                    found.0 = true;
+                }
+                campus::BlockKind::Tower => {
+                    // Above the podium: the curtain wall, one colour wherever it is hit.
+                    let o = DVec3::new(mx, south.y, 12.0);
+                    let a = w.scene.cast(o, DVec3::Y, 200.0).unwrap();
+                    let b = w
+                        .scene
+                        .cast(o + DVec3::new(3.0, 0.0, 5.0), DVec3::Y, 200.0)
+                        .unwrap();
+                    assert_eq!(w.label(&a), Label::Facade);
+                    assert_eq!(w.albedo(&a), w.albedo(&b));
+                    found.1 = true;
+                }
+                _ => {}
+            }
+        }
+        assert_eq!(found, (true, true));
     }
 }
