@@ -193,6 +193,24 @@ pub fn sun_direction() -> DVec3 {
 
 const AMBIENT: f32 = 0.35;
 
+/// Facade base colours the town and the campus draw from.
+const PALETTE: [[f32; 3]; 5] = [
+    [0.55, 0.27, 0.18],
+    [0.62, 0.45, 0.30],
+    [0.70, 0.62, 0.48],
+    [0.45, 0.42, 0.40],
+    [0.58, 0.50, 0.62],
+];
+
+/// Car paints.
+const PAINTS: [[f32; 3]; 5] = [
+    [0.70, 0.08, 0.06],
+    [0.08, 0.20, 0.65],
+    [0.85, 0.70, 0.10],
+    [0.10, 0.45, 0.15],
+    [0.85, 0.85, 0.85],
+];
+
 impl World {
     /// Builds the town for `seed`. The structure is fixed (so presets and tests can rely on where the road,
     /// the white wall and the tower are); sizes, heights, colours and street furniture vary with the seed.
@@ -236,13 +254,6 @@ impl World {
             });
         }
 
-        let palette: [[f32; 3]; 5] = [
-            [0.55, 0.27, 0.18],
-            [0.62, 0.45, 0.30],
-            [0.70, 0.62, 0.48],
-            [0.45, 0.42, 0.40],
-            [0.58, 0.50, 0.62],
-        ];
         let add_building = |rng: &mut rand_xoshiro::Xoshiro256PlusPlus,
                             prims: &mut Vec<Primitive>,
                             materials: &mut Vec<Material>,
@@ -251,7 +262,7 @@ impl World {
                             height: f64,
                             white: bool,
                             pitched: bool| {
-            let base = palette[rng.random_range(0..palette.len())];
+            let base = PALETTE[rng.random_range(0..PALETTE.len())];
             let brick = rng.random_bool(0.5);
             materials.push(Material::Building {
                 base,
@@ -448,16 +459,9 @@ impl World {
                 material: canopy,
             });
         }
-        let paints: [[f32; 3]; 5] = [
-            [0.70, 0.08, 0.06],
-            [0.08, 0.20, 0.65],
-            [0.85, 0.70, 0.10],
-            [0.10, 0.45, 0.15],
-            [0.85, 0.85, 0.85],
-        ];
         for i in 0..params.n_cars {
             materials.push(Material::Car {
-                paint: paints[rng.random_range(0..paints.len())],
+                paint: PAINTS[rng.random_range(0..PAINTS.len())],
             });
             let m = (materials.len() - 1) as u16;
             // Parked against the north outer kerb and along the west/east streets, never in the walking lane
@@ -560,7 +564,7 @@ impl World {
                     return Vec3::splat(0.8);
                 }
                 if glass {
-                    return Vec3::new(0.16, 0.20, 0.25);
+                    return Vec3::from(base);
                 }
                 let u = if n.x.abs() > 0.5 { p.y } else { p.x };
                 facade(u, p.z, Vec3::from(base), brick, s)

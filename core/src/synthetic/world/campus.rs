@@ -11,7 +11,7 @@ use rand::{Rng, SeedableRng};
 use rand_xoshiro::Xoshiro256PlusPlus;
 
 use super::super::raycast::{Primitive, Shape};
-use super::{CampusParams, Material, WorldParams};
+use super::{CampusParams, Material, WorldParams, PAINTS, PALETTE};
 
 /// The block kinds, in the order the seed shuffles them over the grid.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -21,14 +21,6 @@ pub(super) enum BlockKind {
     Arcade,
     Tower,
 }
-
-const PALETTE: [[f32; 3]; 5] = [
-    [0.55, 0.27, 0.18],
-    [0.62, 0.45, 0.30],
-    [0.70, 0.62, 0.48],
-    [0.45, 0.42, 0.40],
-    [0.58, 0.50, 0.62],
-];
 
 struct Builder {
     rng: Xoshiro256PlusPlus,
@@ -62,6 +54,7 @@ impl Builder {
         })
     }
 
+    /// A curtain wall: its `base` colour everywhere.
     fn glass(&mut self) -> u16 {
         self.material(Material::Building {
             base: [0.16, 0.20, 0.25],
@@ -165,13 +158,6 @@ pub(super) fn build(
     let pole = b.material(Material::Pole);
     let trunk = b.material(Material::Trunk);
     let canopy = b.material(Material::Canopy);
-    let paints: [[f32; 3]; 5] = [
-        [0.70, 0.08, 0.06],
-        [0.08, 0.20, 0.65],
-        [0.85, 0.70, 0.10],
-        [0.10, 0.45, 0.15],
-        [0.85, 0.85, 0.85],
-    ];
     for (min, max) in kerbs {
         for y in [min.y + 0.5, max.y - 0.5] {
             let mut x = min.x + b.rng.random_range(2.0..8.0);
@@ -208,7 +194,7 @@ pub(super) fn build(
         }
         // A car against the block's west kerb (on the road, clear of the walking line on the centre).
         if b.rng.random_bool(0.5) {
-            let paint = paints[b.rng.random_range(0..paints.len())];
+            let paint = PAINTS[b.rng.random_range(0..PAINTS.len())];
             let m = b.material(Material::Car { paint });
             let y = b.rng.random_range(min.y + 1.0..max.y - 5.5);
             b.cuboid(
