@@ -157,6 +157,10 @@ enum Command {
         /// Refine each camera's place on the rig too (default: the calibration is a constraint).
         #[arg(long)]
         refine_extrinsics: bool,
+        /// No loop closure: every candidate pair from the prior is matched under its gate at once (the
+        /// stage before loop closure; on a walk under 30 m there is nothing to close anyway).
+        #[arg(long)]
+        no_loops: bool,
         /// Strongest SIFT features kept per image.
         #[arg(long, default_value_t = 4096)]
         max_features: usize,
@@ -521,6 +525,7 @@ fn main() {
             out,
             gt,
             refine_extrinsics,
+            no_loops,
             max_features,
             peak_threshold,
             downscale,
@@ -530,6 +535,7 @@ fn main() {
             out,
             gt,
             refine_extrinsics,
+            no_loops,
             max_features,
             peak_threshold,
             downscale,
@@ -1218,6 +1224,7 @@ fn demo(
             out: dir,
             gt: Some(dataset.join("transforms.json")),
             refine_extrinsics: false,
+            no_loops: false,
             max_features: 4096,
             peak_threshold: None,
             downscale: None,

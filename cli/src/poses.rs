@@ -22,6 +22,8 @@ pub struct PosesArgs {
     /// Exact poses to score prior and refined against (a synthetic world's transforms.json).
     pub gt: Option<PathBuf>,
     pub refine_extrinsics: bool,
+    /// Leave loop closure out (the first rounds then match every candidate pair under the prior).
+    pub no_loops: bool,
     pub max_features: usize,
     /// SIFT's DoG peak threshold, when not the stage's default.
     pub peak_threshold: Option<f32>,
@@ -160,6 +162,7 @@ pub fn run(a: &PosesArgs) -> Result<Value> {
         refine_extrinsics: a.refine_extrinsics,
         ..Default::default()
     };
+    opts.loops.enabled = !a.no_loops;
     opts.sift.max_features = a.max_features;
     if let Some(p) = a.peak_threshold {
         opts.sift.peak_threshold = p;
@@ -355,6 +358,37 @@ fn summarise(report: &Value) {
                 part + 1,
                 names.len()
             );
+        }
+    }
+    let l = &p["loops"];
+    if let Some(why) = l["skipped"].as_str() {
+        eprintln!("[poses] loops: not searched ({why})");
+    } else {
+        let edges = l["edges"].as_array().map(Vec::as_slice).unwrap_or(&[]);
+        eprintln!(
+            "[poses] loops: {} closed (of {} image pairs retrieved, {} keyframe pairs verified, {} beyond the drift allowed, {} inconsistent); the pose graph moved keyframes by up to {:.2} m (mean {:.2} m)",
+            edges.len(),
+            l["retrieved"],
+            l["verified"],
+            l["beyond_drift"],
+            l["inconsistent"],
+            l["max_shift_m"].as_f64().unwrap_or(0.0),
+            l["mean_shift_m"].as_f64().unwrap_or(0.0)
+        );
+        for e in edges.iter().take(5) {
+            eprintln!(
+                "[poses]   {} ↔ {}: {} walked between, {} of {} matches in 3-D, corrected by {:.2} m, {:.2}°",
+                e["names"][0].as_str().unwrap_or("?"),
+                e["names"][1].as_str().unwrap_or("?"),
+                format_args!("{:.0} m", e["path_m"].as_f64().unwrap_or(f64::NAN)),
+                e["inliers"],
+                e["matches"],
+                e["correction_m"].as_f64().unwrap_or(f64::NAN),
+                e["correction_deg"].as_f64().unwrap_or(f64::NAN)
+            );
+        }
+        if edges.len() > 5 {
+            eprintln!("[poses]   … and {} more in report.json", edges.len() - 5);
         }
     }
     if let Some(stages) = p["stages"].as_array() {

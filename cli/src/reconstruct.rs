@@ -472,6 +472,7 @@ pub fn run(c: &ReconstructCmd) -> Result<()> {
                 out: dir.clone(),
                 gt: Some(c.dataset.clone()),
                 refine_extrinsics: false,
+                no_loops: false,
                 max_features: 4096,
                 peak_threshold: None,
                 downscale: None,

@@ -256,7 +256,7 @@ pub fn match_features(
 
 /// 128-float dot product in four accumulators (auto-vectorised).
 #[inline]
-fn dot128(a: &[f32], b: &[f32]) -> f32 {
+pub(crate) fn dot128(a: &[f32], b: &[f32]) -> f32 {
     let mut acc = [0.0f32; 8];
     for (ca, cb) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
         for k in 0..8 {

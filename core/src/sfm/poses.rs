@@ -3,12 +3,17 @@
 //!
 //! 1. SIFT features per image ([`super::features`]), masked to the lens's valid circle and off the sky;
 //! 2. candidate pairs from the prior ([`super::pairs`]), matched under the prior's epipolar gate
-//!    ([`super::matching`]);
+//!    ([`super::matching`]); on a walk long enough for loops, only pairs near each other along it;
 //! 3. tracks ([`super::tracks`]), triangulated from the prior poses ([`super::triangulate`]);
 //! 4. bundle adjustment ([`super::ba`]) of one pose per keyframe (the rig's extrinsics fixed), the points,
 //!    and the SLAM odometry between consecutive keyframes as prior terms, in rounds: re-triangulate with
 //!    the refined poses under a tighter reprojection gate, adjust again;
-//! 5. a Sim(3) (Umeyama, trimmed) from the refined keyframe centres to the prior's restores the SLAM's
+//! 5. loop closure: revisits found from the images ([`super::places`]), verified in 3-D against the
+//!    adjusted map and closed by a pose graph ([`super::loops`]); the pairs far apart along the walk are
+//!    then matched under the closed poses and step 4 runs again with the loops as constraints. A drifting
+//!    prior puts a revisit's two passes metres apart, so its gate cannot match them (campus: ATE 75x
+//!    below the prior's with this, 1.1x without; BENCHMARKS.md);
+//! 6. a Sim(3) (Umeyama, trimmed) from the refined keyframe centres to the prior's restores the SLAM's
 //!    metric frame.
 //!
 //! The rig: frames that share a `keyframe` index were taken at one instant by cameras whose relative
@@ -24,6 +29,7 @@ use serde::Serialize;
 
 use super::ba::{self, AbsolutePrior, BaOptions, BaProblem, BaReport, Observation, RelativePrior};
 use super::features::{self, Features, SiftOptions};
+use super::loops::{self, Landmarks, LoopOptions, LoopReport};
 use super::matching::{self, EpipolarGate, MatchOptions};
 use super::pairs::{self, PairOptions};
 use super::tracks::{self, FeatureRef, PairMatches, TrackStats};
@@ -87,6 +93,7 @@ pub struct PosesOptions {
     /// An image counts as registered with at least this many inlier observations.
     pub min_observations: usize,
     pub refine_extrinsics: bool,
+    pub loops: LoopOptions,
 }
 
 impl Default for PosesOptions {
@@ -110,6 +117,7 @@ impl Default for PosesOptions {
             huber_px: 2.0,
             min_observations: 15,
             refine_extrinsics: false,
+            loops: LoopOptions::default(),
         }
     }
 }
@@ -133,6 +141,16 @@ pub enum PosesError {
     },
     #[error("Sim(3) alignment to the prior: {0}")]
     Align(String),
+}
+
+impl PosesError {
+    /// An `Empty` error without a message gets `detail`.
+    fn or_empty(self, detail: String) -> PosesError {
+        match self {
+            PosesError::Empty(m) if m.is_empty() => PosesError::Empty(detail),
+            e => e,
+        }
+    }
 }
 
 fn name_images(images: &[String]) -> String {
@@ -219,6 +237,8 @@ pub struct PosesReport {
     /// Connected parts of the match graph over keyframes (1: every keyframe tied to the rest by
     /// features; more: only the odometry holds them together).
     pub components: usize,
+    /// Loop closure: the revisits found, verified and closed.
+    pub loops: LoopReport,
     /// The map's scale against the lidar (`lidar_scale`), when the frames have lidar depth.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub lidar_scale: Option<LidarScale>,
@@ -469,39 +489,36 @@ pub fn refine_poses(
     // 2. Pairs and matches.
     let cams: Vec<(CameraModel, Se3)> = frames.iter().map(|f| (f.model, f.prior)).collect();
     let candidates = pairs::candidate_pairs(&cams, &opts.pairs);
-    let done = std::sync::atomic::AtomicUsize::new(0);
-    let total = candidates.len();
-    let matches: Vec<PairMatches> = candidates
-        .par_iter()
-        .map(|p| {
-            let gate = EpipolarGate::new(&frames[p.i].prior, &frames[p.j].prior, &opts.matching);
-            let m = matching::match_features(
-                &features[p.i].descriptors,
-                &rays[p.i],
-                &features[p.j].descriptors,
-                &rays[p.j],
-                Some(&gate),
-                &opts.matching,
-            );
-            let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-            if d.is_multiple_of(16) || d == total {
-                progress("matching", d, total);
-            }
-            ((p.i, p.j), m)
-        })
-        .filter(|(_, m)| m.len() >= opts.matching.min_matches)
+    // On a walk long enough for loops, pairs far apart along it are left to after loop closure: the
+    // prior's drift between them (metres on a campus) makes its epipolar gate pick wrong matches, which
+    // chain the two passes into tracks that bend the adjustment instead of closing the loop.
+    let path_m = path_lengths(&rig.prior_base);
+    let search_loops =
+        opts.loops.enabled && path_m.last().copied().unwrap_or(0.0) >= opts.loops.min_path_m;
+    let far = |i: usize, j: usize| {
+        search_loops
+            && (path_m[rig.keyframe_of[i]] - path_m[rig.keyframe_of[j]]).abs()
+                >= opts.loops.min_path_m
+    };
+    let near: Vec<pairs::Pair> = candidates
+        .iter()
+        .filter(|p| !far(p.i, p.j))
+        .cloned()
         .collect();
-    let match_count: usize = matches.iter().map(|(_, m)| m.len()).sum();
+    let prior_cams: Vec<Se3> = frames.iter().map(|f| f.prior).collect();
+    let mut matches = match_pairs(&near, &prior_cams, &features, &rays, opts, progress);
+    let mut match_count: usize = matches.iter().map(|(_, m)| m.len()).sum();
+    let mut matched_pairs = matches.len();
+    let mut candidate_count = near.len();
     lap(&mut stages, "matching");
 
     // 3. Tracks.
     let counts: Vec<usize> = features.iter().map(Features::len).collect();
-    let (tracks, track_stats) = tracks::build_tracks(&counts, &matches);
-    let part_of_keyframe = components(rig.keyframes, &matches, &rig.keyframe_of);
-    let components = part_of_keyframe.iter().max().map_or(0, |&p| p + 1);
+    let (mut tracks, mut track_stats) = tracks::build_tracks(&counts, &matches);
+    let mut part_of_keyframe = components(rig.keyframes, &matches, &rig.keyframe_of);
     lap(&mut stages, "tracks");
 
-    // 4. Triangulate ↔ adjust rounds.
+    // 4. Triangulate ↔ adjust rounds along the path.
     let mut problem = BaProblem {
         cameras: rig.models.clone(),
         extrinsics: rig.extrinsics.clone(),
@@ -509,113 +526,83 @@ pub fn refine_poses(
         points: Vec::new(),
         observations: Vec::new(),
         relative_priors: odometry(&rig.prior_base, opts),
-        absolute_priors: rig
-            .prior_base
-            .iter()
-            .enumerate()
-            .map(|(k, p)| AbsolutePrior {
-                pose: k,
-                t_world_base: *p,
-                sigma_m: opts.absolute_sigma_m,
-                sigma_rad: opts.absolute_sigma_deg.to_radians(),
-            })
-            .collect(),
+        absolute_priors: absolute(&rig.prior_base, opts),
     };
-    let amax: Vec<f64> = rig.models.iter().map(|m| m.valid_angle()).collect();
-    let mut rounds = Vec::new();
-    let mut rmse_prior = f64::NAN;
-    let nrounds = opts.rounds_px.len();
-    for (round, &gate_px) in opts.rounds_px.iter().enumerate() {
-        let world_cam: Vec<Se3> = (0..n)
+    let input = RoundInput {
+        frames,
+        rig: &rig,
+        features: &features,
+        opts,
+        progress,
+    };
+    let empty = |tracks: usize, matched: usize, candidates: usize| {
+        format!(
+            "no track could be triangulated ({tracks} tracks from {matched} matched pairs of {candidates} candidates; are the images textureless, or the prior far off?)"
+        )
+    };
+    let first = adjust_rounds(&input, &mut problem, &tracks, 0)
+        .map_err(|e| e.or_empty(empty(tracks.len(), matches.len(), candidates.len())))?;
+    let rmse_prior = first.rmse_first;
+    let mut rounds = first.rounds;
+    let obs_feature = first.obs_feature;
+    lap(&mut stages, "adjust");
+
+    // 5. Loop closure: revisits the prior's drift hides, found from the images, verified in 3-D, closed by
+    // a pose graph; then the pairs far apart along the path are matched under the closed poses and the
+    // rounds run again with the loops as constraints.
+    let landmarks = landmarks_of(&input, &problem, &obs_feature);
+    let mut closure = loops::close_loops(
+        &landmarks,
+        &rig.keyframe_of,
+        &problem.poses,
+        &path_m,
+        &rig.models,
+        &rig.extrinsics,
+        &opts.loops,
+    );
+    drop(landmarks);
+    for e in &mut closure.report.edges {
+        e.names = [
+            frames[e.image_a].name.clone(),
+            frames[e.image_b].name.clone(),
+        ];
+    }
+    lap(&mut stages, "loops");
+    if search_loops {
+        problem.poses = closure.poses.clone();
+        let closed: Vec<Se3> = (0..n)
             .map(|i| problem.poses[rig.keyframe_of[i]] * problem.extrinsics[rig.camera_of[i]])
             .collect();
-        let topts = TriangulateOptions {
-            max_error_px: gate_px,
-            min_angle_deg: opts.min_angle_deg,
-        };
-        let tri: Vec<Option<(DVec3, Vec<usize>)>> = tracks
-            .par_iter()
-            .map(|t| {
-                let views: Vec<View> = t
-                    .iter()
-                    .filter_map(|r| {
-                        let i = r.image as usize;
-                        let k = &features[i].keypoints[r.feature as usize];
-                        let c = rig.camera_of[i];
-                        View::new(
-                            &rig.models[c],
-                            amax[c],
-                            &world_cam[i],
-                            DVec2::new(k.x as f64, k.y as f64),
-                        )
-                    })
-                    .collect();
-                // Views that unproject, in the track's order (image ids) for the inlier flags.
-                let ids: Vec<usize> = t
-                    .iter()
-                    .filter(|r| {
-                        let i = r.image as usize;
-                        let k = &features[i].keypoints[r.feature as usize];
-                        rig.models[rig.camera_of[i]]
-                            .unproject_within(
-                                DVec2::new(k.x as f64, k.y as f64),
-                                amax[rig.camera_of[i]],
-                            )
-                            .is_some()
-                    })
-                    .map(|r| r.image as usize)
-                    .collect();
-                let out = triangulate::triangulate(&views, &topts)?;
-                let inl: Vec<usize> = ids
-                    .iter()
-                    .zip(&out.inliers)
-                    .filter(|(_, &k)| k)
-                    .map(|(&i, _)| i)
-                    .collect();
-                Some((out.point, inl))
-            })
+        let closed_cams: Vec<(CameraModel, Se3)> = frames
+            .iter()
+            .zip(&closed)
+            .map(|(f, p)| (f.model, *p))
             .collect();
-        problem.points.clear();
-        problem.observations.clear();
-        for (ti, t) in tri.into_iter().enumerate() {
-            let Some((x, images)) = t else { continue };
-            let pid = problem.points.len();
-            problem.points.push(x);
-            for &i in &images {
-                let r = tracks[ti].iter().find(|r| r.image as usize == i).copied();
-                let Some(FeatureRef { feature, .. }) = r else {
-                    continue;
-                };
-                let k = &features[i].keypoints[feature as usize];
-                problem.observations.push(Observation {
-                    pose: rig.keyframe_of[i],
-                    camera: rig.camera_of[i],
-                    point: pid,
-                    uv: DVec2::new(k.x as f64, k.y as f64),
-                });
-            }
-        }
-        if problem.observations.is_empty() {
-            return Err(PosesError::Empty(format!(
-                "no track could be triangulated ({} tracks from {} matched pairs of {} candidates; are the images textureless, or the prior far off?)",
-                tracks.len(),
-                matches.len(),
-                candidates.len()
-            )));
-        }
-        if round == 0 {
-            rmse_prior = rmse(&ba::reprojection_errors(&problem));
-        }
-        let bopts = BaOptions {
-            huber_px: opts.huber_px.min(gate_px),
-            refine_extrinsics: opts.refine_extrinsics,
-            ..BaOptions::default()
-        };
-        let rep = ba::solve(&mut problem, &bopts)
-            .map_err(|e| ba_failure(round, e, frames, &rig.keyframe_of))?;
-        rounds.push(rep);
-        progress("adjust", round + 1, nrounds);
+        let far_candidates: Vec<pairs::Pair> = pairs::candidate_pairs(&closed_cams, &opts.pairs)
+            .into_iter()
+            .filter(|p| far(p.i, p.j))
+            .collect();
+        let far_matches = match_pairs(&far_candidates, &closed, &features, &rays, opts, progress);
+        candidate_count = near.len() + far_candidates.len();
+        matches.extend(far_matches);
+        matches.sort_by_key(|(p, _)| *p);
+        match_count = matches.iter().map(|(_, m)| m.len()).sum();
+        matched_pairs = matches.len();
+        (tracks, track_stats) = tracks::build_tracks(&counts, &matches);
+        part_of_keyframe = components(rig.keyframes, &matches, &rig.keyframe_of);
+        problem.relative_priors = odometry(&rig.prior_base, opts);
+        problem
+            .relative_priors
+            .extend(closure.constraints.iter().copied());
+        problem.absolute_priors = absolute(&closure.poses, opts);
+        lap(&mut stages, "matching after loops");
+        let second = adjust_rounds(&input, &mut problem, &tracks, rounds.len())
+            .map_err(|e| e.or_empty(empty(tracks.len(), matched_pairs, candidate_count)))?;
+        rounds.extend(second.rounds);
+        lap(&mut stages, "adjust after loops");
     }
+    let components = part_of_keyframe.iter().max().map_or(0, |&p| p + 1);
+
     // Final inlier gate: drop observations beyond the last round's gate and recount.
     let last_gate = opts.rounds_px.last().copied().unwrap_or(4.0);
     let errs = ba::reprojection_errors(&problem);
@@ -636,7 +623,7 @@ pub fn refine_poses(
             }
         }
     }
-    lap(&mut stages, "adjust");
+    lap(&mut stages, "inlier gate");
 
     // 5. Sim(3) to the prior's keyframe centres (trimmed Umeyama).
     let (sim, inliers) = align_to_prior(&problem.poses, &rig.prior_base)?;
@@ -691,8 +678,8 @@ pub fn refine_poses(
         keyframes: rig.keyframes,
         registered,
         registered_fraction: registered as f64 / n as f64,
-        candidate_pairs: candidates.len(),
-        matched_pairs: matches.len(),
+        candidate_pairs: candidate_count,
+        matched_pairs,
         matches: match_count,
         tracks: track_stats,
         points: point_tracks.iter().filter(|t| t.len() >= 2).count(),
@@ -705,6 +692,7 @@ pub fn refine_poses(
         sim3_scale: sim.scale,
         sim3_inliers: inliers,
         components,
+        loops: closure.report,
         lidar_scale: None,
         stages,
         per_image,
@@ -804,6 +792,233 @@ fn rmse(errs: &[Option<f64>]) -> f64 {
         return f64::NAN;
     }
     (v.iter().map(|e| e * e).sum::<f64>() / v.len() as f64).sqrt()
+}
+
+/// Matches of each candidate pair under the epipolar gate of `world_cam` (each image's `T_world_cam`:
+/// the prior's, or the loop-closed poses'); pairs with too few matches are dropped.
+fn match_pairs(
+    candidates: &[pairs::Pair],
+    world_cam: &[Se3],
+    features: &[Features],
+    rays: &[Vec<Option<DVec3>>],
+    opts: &PosesOptions,
+    progress: ProgressFn,
+) -> Vec<PairMatches> {
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let total = candidates.len();
+    candidates
+        .par_iter()
+        .map(|p| {
+            let gate = EpipolarGate::new(&world_cam[p.i], &world_cam[p.j], &opts.matching);
+            let m = matching::match_features(
+                &features[p.i].descriptors,
+                &rays[p.i],
+                &features[p.j].descriptors,
+                &rays[p.j],
+                Some(&gate),
+                &opts.matching,
+            );
+            let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            if d.is_multiple_of(16) || d == total {
+                progress("matching", d, total);
+            }
+            ((p.i, p.j), m)
+        })
+        .filter(|(_, m)| m.len() >= opts.matching.min_matches)
+        .collect()
+}
+
+/// The weak pull of each keyframe towards `base` (the gauge).
+fn absolute(base: &[Se3], opts: &PosesOptions) -> Vec<AbsolutePrior> {
+    base.iter()
+        .enumerate()
+        .map(|(k, p)| AbsolutePrior {
+            pose: k,
+            t_world_base: *p,
+            sigma_m: opts.absolute_sigma_m,
+            sigma_rad: opts.absolute_sigma_deg.to_radians(),
+        })
+        .collect()
+}
+
+/// Distance walked to each keyframe along `base` (m).
+fn path_lengths(base: &[Se3]) -> Vec<f64> {
+    let mut out = Vec::with_capacity(base.len());
+    let mut d = 0.0;
+    for (k, p) in base.iter().enumerate() {
+        if k > 0 {
+            d += p.trans.distance(base[k - 1].trans);
+        }
+        out.push(d);
+    }
+    out
+}
+
+/// What the triangulate ↔ adjust rounds read.
+struct RoundInput<'a> {
+    frames: &'a [PoseFrame],
+    rig: &'a Rig,
+    features: &'a [Features],
+    opts: &'a PosesOptions,
+    progress: ProgressFn<'a>,
+}
+
+/// What the rounds leave besides the adjusted problem.
+struct Adjusted {
+    rounds: Vec<BaReport>,
+    /// Reprojection RMSE of the first round's points before its adjustment.
+    rmse_first: f64,
+    /// The feature (in its image) behind each of `problem.observations`.
+    obs_feature: Vec<u32>,
+}
+
+/// Triangulates `tracks` from the problem's poses and adjusts, once per gate of `opts.rounds_px`
+/// (`first_round`: how many rounds ran before, for messages). No triangulated track is
+/// `PosesError::Empty("")`, for the caller to explain.
+fn adjust_rounds(
+    input: &RoundInput,
+    problem: &mut BaProblem,
+    tracks: &[Vec<FeatureRef>],
+    first_round: usize,
+) -> Result<Adjusted, PosesError> {
+    let RoundInput {
+        frames,
+        rig,
+        features,
+        opts,
+        progress,
+    } = *input;
+    let n = frames.len();
+    let amax: Vec<f64> = rig.models.iter().map(|m| m.valid_angle()).collect();
+    let mut rounds = Vec::new();
+    let mut rmse_first = f64::NAN;
+    let mut obs_feature = Vec::new();
+    let nrounds = opts.rounds_px.len();
+    for (round, &gate_px) in opts.rounds_px.iter().enumerate() {
+        let world_cam: Vec<Se3> = (0..n)
+            .map(|i| problem.poses[rig.keyframe_of[i]] * problem.extrinsics[rig.camera_of[i]])
+            .collect();
+        let topts = TriangulateOptions {
+            max_error_px: gate_px,
+            min_angle_deg: opts.min_angle_deg,
+        };
+        let tri: Vec<Option<(DVec3, Vec<usize>)>> = tracks
+            .par_iter()
+            .map(|t| {
+                let views: Vec<View> = t
+                    .iter()
+                    .filter_map(|r| {
+                        let i = r.image as usize;
+                        let k = &features[i].keypoints[r.feature as usize];
+                        let c = rig.camera_of[i];
+                        View::new(
+                            &rig.models[c],
+                            amax[c],
+                            &world_cam[i],
+                            DVec2::new(k.x as f64, k.y as f64),
+                        )
+                    })
+                    .collect();
+                // Views that unproject, in the track's order (image ids) for the inlier flags.
+                let ids: Vec<usize> = t
+                    .iter()
+                    .filter(|r| {
+                        let i = r.image as usize;
+                        let k = &features[i].keypoints[r.feature as usize];
+                        rig.models[rig.camera_of[i]]
+                            .unproject_within(
+                                DVec2::new(k.x as f64, k.y as f64),
+                                amax[rig.camera_of[i]],
+                            )
+                            .is_some()
+                    })
+                    .map(|r| r.image as usize)
+                    .collect();
+                let out = triangulate::triangulate(&views, &topts)?;
+                let inl: Vec<usize> = ids
+                    .iter()
+                    .zip(&out.inliers)
+                    .filter(|(_, &k)| k)
+                    .map(|(&i, _)| i)
+                    .collect();
+                Some((out.point, inl))
+            })
+            .collect();
+        problem.points.clear();
+        problem.observations.clear();
+        obs_feature.clear();
+        for (ti, t) in tri.into_iter().enumerate() {
+            let Some((x, images)) = t else { continue };
+            let pid = problem.points.len();
+            problem.points.push(x);
+            for &i in &images {
+                let r = tracks[ti].iter().find(|r| r.image as usize == i).copied();
+                let Some(FeatureRef { feature, .. }) = r else {
+                    continue;
+                };
+                let k = &features[i].keypoints[feature as usize];
+                problem.observations.push(Observation {
+                    pose: rig.keyframe_of[i],
+                    camera: rig.camera_of[i],
+                    point: pid,
+                    uv: DVec2::new(k.x as f64, k.y as f64),
+                });
+                obs_feature.push(feature);
+            }
+        }
+        if problem.observations.is_empty() {
+            return Err(PosesError::Empty(String::new()));
+        }
+        if round == 0 {
+            rmse_first = rmse(&ba::reprojection_errors(problem));
+        }
+        let bopts = BaOptions {
+            huber_px: opts.huber_px.min(gate_px),
+            refine_extrinsics: opts.refine_extrinsics,
+            ..BaOptions::default()
+        };
+        let rep = ba::solve(problem, &bopts)
+            .map_err(|e| ba_failure(first_round + round, e, frames, &rig.keyframe_of))?;
+        rounds.push(rep);
+        progress("adjust", round + 1, nrounds);
+    }
+    Ok(Adjusted {
+        rounds,
+        rmse_first,
+        obs_feature,
+    })
+}
+
+/// Each image's triangulated features within the last round's gate, for loop verification: their
+/// descriptors and adjusted points, and the camera's centre.
+fn landmarks_of(input: &RoundInput, problem: &BaProblem, obs_feature: &[u32]) -> Vec<Landmarks> {
+    let rig = input.rig;
+    let n = input.frames.len();
+    let last_gate = input.opts.rounds_px.last().copied().unwrap_or(4.0);
+    let mut frame_of: BTreeMap<(usize, usize), usize> = BTreeMap::new();
+    for i in 0..n {
+        frame_of.insert((rig.keyframe_of[i], rig.camera_of[i]), i);
+    }
+    let mut out: Vec<Landmarks> = (0..n)
+        .map(|i| Landmarks {
+            centre: (problem.poses[rig.keyframe_of[i]] * problem.extrinsics[rig.camera_of[i]])
+                .trans,
+            ..Landmarks::default()
+        })
+        .collect();
+    let errs = ba::reprojection_errors(problem);
+    for ((o, e), &f) in problem.observations.iter().zip(&errs).zip(obs_feature) {
+        if !e.is_some_and(|e| e <= last_gate) {
+            continue;
+        }
+        let Some(&i) = frame_of.get(&(o.pose, o.camera)) else {
+            continue;
+        };
+        let d = &input.features[i].descriptors[f as usize * 128..(f as usize + 1) * 128];
+        out[i].descriptors.extend_from_slice(d);
+        out[i].points.push(problem.points[o.point]);
+    }
+    out
 }
 
 /// SLAM odometry terms between consecutive keyframes.
