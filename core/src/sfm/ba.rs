@@ -86,6 +86,23 @@ pub struct RelativePrior {
     pub sigma_rad: f64,
 }
 
+impl RelativePrior {
+    /// The steps of a trajectory as relative priors: keyframe k to k + 1 as `base` has them, each with
+    /// the same 1-σ (the SLAM odometry; a pose graph's chain).
+    pub fn chain(base: &[Se3], sigma_m: f64, sigma_rad: f64) -> Vec<RelativePrior> {
+        base.windows(2)
+            .enumerate()
+            .map(|(k, w)| RelativePrior {
+                a: k,
+                b: k + 1,
+                t_a_b: w[0].inverse() * w[1],
+                sigma_m,
+                sigma_rad,
+            })
+            .collect()
+    }
+}
+
 /// A weak absolute prior on one keyframe pose (gauge; keeps the solution near the SLAM frame).
 #[derive(Clone, Copy, Debug)]
 pub struct AbsolutePrior {

@@ -402,17 +402,8 @@ fn pose_graph(
     extrinsics: &[Se3],
     opts: &LoopOptions,
 ) -> Vec<Se3> {
-    let mut relative_priors: Vec<RelativePrior> = poses
-        .windows(2)
-        .enumerate()
-        .map(|(k, w)| RelativePrior {
-            a: k,
-            b: k + 1,
-            t_a_b: w[0].inverse() * w[1],
-            sigma_m: opts.chain_sigma_m,
-            sigma_rad: opts.chain_sigma_deg.to_radians(),
-        })
-        .collect();
+    let mut relative_priors =
+        RelativePrior::chain(poses, opts.chain_sigma_m, opts.chain_sigma_deg.to_radians());
     relative_priors.extend(edges.iter().map(|(_, c)| *c));
     let mut problem = BaProblem {
         cameras: cameras.to_vec(),

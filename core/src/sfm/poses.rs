@@ -1023,16 +1023,11 @@ fn landmarks_of(input: &RoundInput, problem: &BaProblem, obs_feature: &[u32]) ->
 
 /// SLAM odometry terms between consecutive keyframes.
 fn odometry(base: &[Se3], opts: &PosesOptions) -> Vec<RelativePrior> {
-    base.windows(2)
-        .enumerate()
-        .map(|(k, w)| RelativePrior {
-            a: k,
-            b: k + 1,
-            t_a_b: w[0].inverse() * w[1],
-            sigma_m: opts.odometry_sigma_m,
-            sigma_rad: opts.odometry_sigma_deg.to_radians(),
-        })
-        .collect()
+    RelativePrior::chain(
+        base,
+        opts.odometry_sigma_m,
+        opts.odometry_sigma_deg.to_radians(),
+    )
 }
 
 /// Connected components of the keyframe graph whose edges are matched pairs: each keyframe's part,

@@ -159,50 +159,43 @@ impl Preset {
     /// gate still paired the two passes and the adjustment alone closed the loop, which a CI check of
     /// loop closure must not allow.
     pub fn campus_loop(seed: u64) -> Self {
+        // The campus's world, ground truth and noise settings; its own block, walk, rig and prior.
+        let base = Self::campus(seed);
         let campus = world::CampusParams {
             blocks: [1, 1],
             block_size: [40.0, 30.0],
         };
         let world = WorldParams {
-            road_width: 8.0,
             layout: world::Layout::Campus(campus.clone()),
-            ..WorldParams::default()
+            ..base.world.clone()
         };
         let c = |i, j| campus.crossing(world.road_width, i, j).to_array();
         let (a, b) = (c(0, 0), c(1, 0));
-        let route = vec![
-            a,
-            b,
-            c(1, 1),
-            c(0, 1),
-            a,
-            [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0],
-        ];
         let motion = MotionParams {
-            route,
-            start_offset: 0.0,
-            ..MotionParams::default()
+            route: vec![
+                a,
+                b,
+                c(1, 1),
+                c(0, 1),
+                a,
+                [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0],
+            ],
+            ..base.motion.clone()
         };
         let spacing = 2.0;
-        let keyframes = ((motion.path_length() - 1.0) / spacing).floor() as usize;
         Self {
             name: "campus-loop".into(),
-            seed,
             rig: Rig::oxford_spires_scaled(0.25),
             lidar: LidarSpec::qt64_half(),
-            keyframes,
+            keyframes: ((motion.path_length() - 1.0) / spacing).floor() as usize,
             keyframe_interval: spacing / motion.speed,
             world,
             motion,
-            supersample: 2,
-            pixel_noise: 1.0,
-            gt_spacing: 0.05,
-            observed_voxel: 0.2,
             prior: prior::PriorParams {
                 yaw_deg_per_m: 0.08,
-                ..prior::PriorParams::default()
+                ..base.prior.clone()
             },
-            walk_keyframes: None,
+            ..base
         }
     }
 
